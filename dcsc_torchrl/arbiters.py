@@ -1,0 +1,165 @@
+"""Arbiters: who gets how much authority (the fusion weight beta of Eqs. 14-15, 18).
+
+Every arbiter reads the two confidences (and, for HULA, the machine's uncertainty) and
+writes the same two keys, ``confidence_ratio`` (b_t, Eq. 18) and ``beta`` (the
+machine's share of authority in Eq. 14), so every method of the paper is the same
+pipeline with a different arbiter.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+
+from dcsc_torchrl.confidence import check_finite, check_in_range
+
+
+def confidence_ratio(machine_confidence: torch.Tensor, human_confidence: torch.Tensor) -> torch.Tensor:
+    """Eq. 18: ``b_t = b_m / (b_m + b_h)``, in [0, 1].
+
+    When both confidences are 0 the ratio is undefined; it is set to 0.5 (neither side
+    is favoured), so the result is never NaN.
+
+    Examples:
+        >>> confidence_ratio(torch.tensor([0.9, 0.0]), torch.tensor([0.1, 0.0]))
+        tensor([0.9000, 0.5000])
+    """
+    total = machine_confidence + human_confidence
+    safe_total = torch.where(total > 0, total, torch.ones_like(total))
+    return torch.where(total > 0, machine_confidence / safe_total, torch.full_like(total, 0.5))
+
+
+def fusion_weight(theta: torch.Tensor, ratio: torch.Tensor) -> torch.Tensor:
+    """Eq. 15: ``beta_t(theta) = 1 / (1 + exp(-theta * b_t))`` (one theta per action dim)."""
+    return torch.sigmoid(theta * ratio)
+
+
+class Arbiter(TensorDictModuleBase):
+    """Base arbiter: writes ``confidence_ratio`` (Eq. 18) and ``beta`` of shape ``[*batch, dims]``.
+
+    Subclasses define :meth:`machine_share`, the beta that Eq. 14 gives the machine.
+
+    Args:
+        dims: number of action dimensions beta is given for (1 for a discrete
+            action, d for a d-dimensional continuous action).
+        in_keys: machine confidence, human confidence (and any further key the
+            subclass reads).
+        out_keys: confidence ratio, beta.
+    """
+
+    default_in_keys: tuple[NestedKey, ...] = ("machine_confidence", "human_confidence")
+
+    def __init__(
+        self,
+        dims: int = 1,
+        *,
+        in_keys: Sequence[NestedKey] | None = None,
+        out_keys: Sequence[NestedKey] = ("confidence_ratio", "beta"),
+    ) -> None:
+        super().__init__()
+        if int(dims) != dims or dims < 1:
+            raise ValueError(f"dims must be an integer >= 1, got {dims!r}")
+        self.dims = int(dims)
+        self.in_keys = list(in_keys) if in_keys is not None else list(self.default_in_keys)
+        self.out_keys = list(out_keys)
+
+    def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+        """The machine's authority beta, broadcastable to ``[*batch, dims]``."""
+        raise NotImplementedError
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        machine_key, human_key = self.in_keys[:2]
+        b_m = tensordict.get(machine_key)
+        b_h = tensordict.get(human_key)
+        check_finite(str(machine_key), b_m)
+        check_finite(str(human_key), b_h)
+        ratio = confidence_ratio(b_m, b_h)
+        beta = self.machine_share(ratio, tensordict)
+        beta = beta.expand(*ratio.shape[:-1], self.dims)
+        ratio_key, beta_key = self.out_keys
+        tensordict.set(ratio_key, ratio)
+        tensordict.set(beta_key, beta)
+        return tensordict
+
+
+class ConfidenceArbiter(Arbiter):
+    """DC-SC's learnable arbiter, Eq. 15: ``beta = sigmoid(theta * b_t)``.
+
+    ``theta`` is an ``nn.Parameter`` with one entry per action dimension (DESIGN §3:
+    1 for LunarLander, 3 for the UAV), trained by Eq. 19 (:class:`~dcsc_torchrl.losses.ThetaLoss`
+    or TorchRL's ``DDPGLoss``). With ``theta >= 0`` beta stays in [0.5, sigmoid(theta)].
+
+    Args:
+        theta_init: initial value of every entry of theta (finite).
+        dims: number of action dimensions.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> arbiter = ConfidenceArbiter(theta_init=2.0, dims=1)
+        >>> td = TensorDict({"machine_confidence": torch.tensor([[0.8]]),
+        ...                  "human_confidence": torch.tensor([[0.2]])}, [1])
+        >>> arbiter(td)["beta"]
+        tensor([[0.8320]], grad_fn=<ExpandBackward0>)
+    """
+
+    def __init__(self, theta_init: float = 1.0, dims: int = 1, **kwargs) -> None:
+        super().__init__(dims, **kwargs)
+        if not math.isfinite(theta_init):
+            raise ValueError(f"theta_init must be finite, got {theta_init!r}")
+        self.theta = nn.Parameter(torch.full((self.dims,), float(theta_init)))
+
+    def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+        return fusion_weight(self.theta, ratio)
+
+
+class MachineOnlyArbiter(Arbiter):
+    """The machine alone (A2C / DDPG baseline): beta = 1."""
+
+    def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+        return torch.ones_like(ratio)
+
+
+class HumanOnlyArbiter(Arbiter):
+    """The operator alone: beta = 0."""
+
+    def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+        return torch.zeros_like(ratio)
+
+
+class HULAArbiter(Arbiter):
+    """HULA (the paper's ref. [31]): the operator takes over when the machine is unsure.
+
+    ``beta = 0`` when ``machine_uncertainty > threshold``, else ``beta = 1``.
+
+    Args:
+        threshold: the uncertainty above which control passes to the operator (>= 0).
+            The experiments calibrate it as the 90th percentile of the machine's
+            uncertainty during the operator-alone runs.
+        dims: number of action dimensions.
+        uncertainty_key: where the machine's uncertainty c_t is read.
+    """
+
+    def __init__(
+        self,
+        threshold: float,
+        dims: int = 1,
+        *,
+        uncertainty_key: NestedKey = "machine_uncertainty",
+        **kwargs,
+    ) -> None:
+        super().__init__(dims, **kwargs)
+        check_in_range("threshold", threshold, 0.0, float("inf"), low_inclusive=True, high_inclusive=False)
+        self.threshold = float(threshold)
+        self.uncertainty_key = uncertainty_key
+        self.in_keys = [*self.in_keys[:2], uncertainty_key]
+
+    def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+        uncertainty = tensordict.get(self.uncertainty_key)
+        check_finite(str(self.uncertainty_key), uncertainty)
+        return (uncertainty <= self.threshold).to(ratio.dtype)

@@ -1,0 +1,178 @@
+"""Losses of Algorithm 1: the Q critic's TD loss and the theta update of Eq. 19 (discrete)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule, dispatch
+from tensordict.utils import NestedKey
+from torchrl.objectives import LossModule
+from torchrl.objectives.utils import distance_loss
+
+from dcsc_torchrl.confidence import check_in_range
+from dcsc_torchrl.policy import SharedPolicyModule
+
+
+class QCriticLoss(LossModule):
+    """TD loss of a discrete Q critic, Algorithm 1 lines 8-12.
+
+    ``y = r + gamma * (1 - terminated) * max_a Q'(s', a)`` with ``Q'`` a target copy of
+    the critic (soft-updated with TorchRL's ``SoftUpdate(loss, tau=...)``), and
+    ``loss_qvalue = distance(Q(s, a_t), y)``. Used beside A2C in pretraining (DESIGN §5)
+    and, through :class:`ThetaLoss`, online in DC-SC.
+
+    Args:
+        qvalue_network: maps the observation to ``action_value`` ``[*batch, n]``.
+        gamma: discount factor in (0, 1].
+        loss_function: ``"l2"``, ``"l1"`` or ``"smooth_l1"``.
+        delay_qvalue: keep a target copy of the critic (``target_qvalue_network_params``).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> qnet = TensorDictModule(torch.nn.Linear(8, 4), ["observation"], ["action_value"])
+        >>> loss = QCriticLoss(qnet)
+        >>> batch = TensorDict({"observation": torch.randn(3, 8),
+        ...     "action": torch.eye(4)[[0, 1, 2]].long(),
+        ...     "next": {"observation": torch.randn(3, 8), "reward": torch.randn(3, 1),
+        ...              "done": torch.zeros(3, 1, dtype=torch.bool),
+        ...              "terminated": torch.zeros(3, 1, dtype=torch.bool)}}, [3])
+        >>> sorted(loss(batch).keys())
+        ['loss_qvalue', 'pred_value', 'target_value']
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Keys read by the loss; change them with ``loss.set_keys(...)``.
+
+        Attributes:
+            action_value: the critic's output, one value per action.
+            action: the one-hot action taken.
+            reward: the reward (under ``"next"``).
+            done: the done flag (under ``"next"``).
+            terminated: the terminated flag (under ``"next"``); bootstraps stop there.
+        """
+
+        action_value: NestedKey = "action_value"
+        action: NestedKey = "action"
+        reward: NestedKey = "reward"
+        done: NestedKey = "done"
+        terminated: NestedKey = "terminated"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    out_keys = ["loss_qvalue", "pred_value", "target_value"]
+
+    qvalue_network: TensorDictModule
+    qvalue_network_params: TensorDictParams
+    target_qvalue_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        qvalue_network: TensorDictModule,
+        *,
+        gamma: float = 0.99,
+        loss_function: str = "l2",
+        delay_qvalue: bool = True,
+    ) -> None:
+        super().__init__()
+        check_in_range("gamma", gamma, 0.0, 1.0, low_inclusive=False, high_inclusive=True)
+        self.gamma = float(gamma)
+        self.loss_function = loss_function
+        self.delay_qvalue = delay_qvalue
+        self.convert_to_functional(qvalue_network, "qvalue_network", create_target_params=delay_qvalue)
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        obs_keys = list(self.qvalue_network.in_keys)
+        keys = self.tensor_keys
+        return [
+            *obs_keys,
+            keys.action,
+            *[("next", key) for key in obs_keys],
+            ("next", keys.reward),
+            ("next", keys.done),
+            ("next", keys.terminated),
+        ]
+
+    def action_values(self, tensordict: TensorDictBase, params: TensorDictBase) -> torch.Tensor:
+        """The critic's ``Q(s, .)`` on ``tensordict`` with the given parameters."""
+        td = tensordict.select(*self.qvalue_network.in_keys, strict=True).copy()
+        with params.to_module(self.qvalue_network):
+            self.qvalue_network(td)
+        return td.get(self.tensor_keys.action_value)
+
+    def loss_qvalue(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Algorithm 1 lines 9-12 as a loss: ``distance(Q(s, a), r + gamma max_a Q'(s', a))``."""
+        keys = self.tensor_keys
+        action = tensordict.get(keys.action).to(torch.get_default_dtype())
+        pred = (self.action_values(tensordict, self.qvalue_network_params) * action).sum(-1, keepdim=True)
+        next_td = tensordict.get("next")
+        target_params = self.target_qvalue_network_params if self.delay_qvalue else self.qvalue_network_params
+        with torch.no_grad():
+            next_value = self.action_values(next_td, target_params).max(-1, keepdim=True).values
+            not_terminal = (~next_td.get(keys.terminated)).to(next_value.dtype)
+            target = next_td.get(keys.reward) + self.gamma * not_terminal * next_value
+        loss = distance_loss(pred, target, loss_function=self.loss_function).mean()
+        return loss, {"pred_value": pred.detach().mean(), "target_value": target.mean()}
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        loss, metadata = self.loss_qvalue(tensordict)
+        return TensorDict({"loss_qvalue": loss, **metadata}, batch_size=[])
+
+
+class ThetaLoss(QCriticLoss):
+    """The theta update of Eq. 19 (discrete DC-SC), plus the critic's TD loss.
+
+    ``loss_theta = -sum_a pi_theta(a|s) Q(s, a)`` averaged over the batch, with Q
+    detached and ``pi_theta = beta(theta) pi_m + (1 - beta(theta)) pi_h`` (Eq. 14)
+    recomputed from the batch's stored ``machine_probs``, ``human_action`` and
+    confidences (the MC-dropout pass is not repeated). Its gradient w.r.t. theta is
+    exactly Eq. 19, ``-b_t beta (1 - beta) (pi_m - pi_h) . Q``. ``loss_qvalue`` is the
+    TD loss of :class:`QCriticLoss`, so Algorithm 1's two updates are one backward pass.
+
+    Args:
+        policy: the discrete :class:`~dcsc_torchrl.policy.SharedPolicyModule`; its
+            ``arbiter`` and ``blend`` parts are reused (theta lives in the arbiter).
+        qvalue_network: the Q critic, ``observation -> action_value [*batch, n]``.
+        gamma, loss_function, delay_qvalue: as in :class:`QCriticLoss`.
+    """
+
+    out_keys = ["loss_theta", "loss_qvalue", "pred_value", "target_value", "beta"]
+
+    def __init__(self, policy: SharedPolicyModule, qvalue_network: TensorDictModule, **kwargs) -> None:
+        if not policy.discrete:
+            raise ValueError(
+                "ThetaLoss is the discrete theta update; for continuous actions use TorchRL's "
+                "DDPGLoss with the SharedPolicyModule as actor (see docs/math.md)"
+            )
+        super().__init__(qvalue_network, **kwargs)
+        self.arbiter = policy["arbiter"]
+        self.blend = policy["blend"]
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        return sorted({*super().in_keys, *self.arbiter.in_keys, *self.blend.in_keys} - set(self.arbiter.out_keys), key=str)
+
+    def loss_theta(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """``-sum_a pi_theta(a|s) Q(s, a)`` with Q detached (gradient = -Eq. 19)."""
+        td = tensordict.select(*self.arbiter.in_keys, *self.blend.in_keys, strict=False).copy()
+        self.blend(self.arbiter(td))
+        probs = td.get(self.blend.out_keys[0])
+        with torch.no_grad():
+            q = self.action_values(tensordict, self.qvalue_network_params)
+        loss = -(probs * q).sum(-1).mean()
+        return loss, {"beta": td.get(self.arbiter.out_keys[1]).detach().mean()}
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        loss_q, metadata = self.loss_qvalue(tensordict)
+        loss_theta, metadata_theta = self.loss_theta(tensordict)
+        return TensorDict({"loss_theta": loss_theta, "loss_qvalue": loss_q, **metadata, **metadata_theta}, batch_size=[])

@@ -1,0 +1,151 @@
+"""The machine side of DC-SC: MC-dropout policy mean, uncertainty and confidence (Eqs. 10, 13)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+
+from dcsc_torchrl.confidence import (
+    check_finite,
+    check_in_range,
+    machine_confidence,
+    mc_dropout_uncertainty,
+)
+
+_DROPOUT_TYPES = (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d, nn.AlphaDropout)
+
+_OUT_KEYS = {
+    "probs": ["machine_probs", "machine_uncertainty", "machine_confidence"],
+    "action": ["machine_action", "machine_uncertainty", "machine_confidence"],
+}
+
+
+def dropout_layers(network: nn.Module) -> list[nn.Module]:
+    """Returns the dropout layers of ``network`` (those MC dropout switches on)."""
+    return [m for m in network.modules() if isinstance(m, _DROPOUT_TYPES)]
+
+
+@contextmanager
+def mc_dropout_active(network: nn.Module) -> Iterator[None]:
+    """Switches only the dropout layers of ``network`` on, then back to eval mode.
+
+    Other layers (e.g. batch norm) keep their mode, so the M-sample pass samples
+    dropout masks and nothing else.
+    """
+    layers = dropout_layers(network)
+    for layer in layers:
+        layer.train()
+    try:
+        yield
+    finally:
+        for layer in layers:
+            layer.eval()
+
+
+class MCDropoutPolicy(TensorDictModuleBase):
+    """Machine policy with MC-dropout uncertainty (Eq. 10) and confidence (Eq. 13).
+
+    Draws ``num_samples`` (M) dropout samples of the wrapped actor network in ONE
+    batched forward pass (the input is expanded to ``[M, *batch, ...]``; each row gets
+    its own dropout mask), and writes
+
+    - the mean policy output: ``machine_probs`` (discrete: softmax of the network's
+      logits) or ``machine_action`` (continuous: the network's action),
+    - ``machine_uncertainty``: ``c_t = trace(Cov) + d * tau_inv`` (Eq. 10),
+    - ``machine_confidence``: ``b_m(c_t)`` (Eq. 13).
+
+    The machine is frozen in DC-SC (Algorithm 1: its parameters phi stay fixed), so the
+    pass runs without autograd. Outside the M-sample pass the wrapped network stays in
+    eval mode, whatever ``.train()`` is called on this module.
+
+    Args:
+        network: the machine actor; must contain at least one dropout layer. For
+            ``output="probs"`` it maps observations to logits ``[*batch, n]``; for
+            ``output="action"`` to actions ``[*batch, d]``.
+        output: ``"probs"`` (discrete actions) or ``"action"`` (continuous actions).
+        num_samples: M, the number of dropout samples (>= 1).
+        lam: lambda of Eq. 11, in (0, 1).
+        delta2: delta_2 of Eq. 12, > 1.
+        tau_inv: the observation noise tau^-1 of Eq. 10, >= 0.
+        in_keys: the observation key(s) fed to ``network``.
+        out_keys: where to write mean, uncertainty and confidence; defaults to
+            ``["machine_probs" | "machine_action", "machine_uncertainty",
+            "machine_confidence"]``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> net = torch.nn.Sequential(torch.nn.Linear(8, 32), torch.nn.Tanh(),
+        ...                           torch.nn.Dropout(0.1), torch.nn.Linear(32, 4))
+        >>> machine = MCDropoutPolicy(net, output="probs", num_samples=10)
+        >>> td = machine(TensorDict({"observation": torch.randn(5, 8)}, [5]))
+        >>> td["machine_probs"].shape, td["machine_confidence"].shape
+        (torch.Size([5, 4]), torch.Size([5, 1]))
+    """
+
+    def __init__(
+        self,
+        network: nn.Module,
+        *,
+        output: str = "probs",
+        num_samples: int = 10,
+        lam: float = 0.6,
+        delta2: float = 1.05,
+        tau_inv: float = 0.0,
+        in_keys: Sequence[NestedKey] = ("observation",),
+        out_keys: Sequence[NestedKey] | None = None,
+    ) -> None:
+        super().__init__()
+        if output not in _OUT_KEYS:
+            raise ValueError(f"output must be 'probs' or 'action', got {output!r}")
+        if int(num_samples) != num_samples or num_samples < 1:
+            raise ValueError(f"num_samples must be an integer >= 1, got {num_samples!r}")
+        check_in_range("lam", lam, 0.0, 1.0, low_inclusive=False, high_inclusive=False)
+        check_in_range("delta2", delta2, 1.0, float("inf"), low_inclusive=False, high_inclusive=False)
+        check_in_range("tau_inv", tau_inv, 0.0, float("inf"), low_inclusive=True, high_inclusive=False)
+        if not dropout_layers(network):
+            raise ValueError(
+                "network has no dropout layer: its MC-dropout uncertainty would always be 0; "
+                "add nn.Dropout to the machine actor"
+            )
+        self.network = network.eval()
+        self.output = output
+        self.num_samples = int(num_samples)
+        self.lam = lam
+        self.delta2 = delta2
+        self.tau_inv = tau_inv
+        self.in_keys = list(in_keys)
+        self.out_keys = list(out_keys) if out_keys is not None else list(_OUT_KEYS[output])
+        if len(self.out_keys) != 3:
+            raise ValueError(f"out_keys must name 3 entries (mean, uncertainty, confidence), got {self.out_keys}")
+
+    def train(self, mode: bool = True) -> MCDropoutPolicy:
+        super().train(mode)
+        self.network.eval()
+        return self
+
+    def sample(self, *inputs: torch.Tensor) -> torch.Tensor:
+        """M dropout samples of the policy output, ``[M, *batch, d]``, in one forward pass."""
+        expanded = [x.expand(self.num_samples, *x.shape) for x in inputs]
+        with mc_dropout_active(self.network):
+            out = self.network(*expanded)
+        return torch.softmax(out, dim=-1) if self.output == "probs" else out
+
+    @torch.no_grad()
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        inputs = [tensordict.get(key) for key in self.in_keys]
+        for key, value in zip(self.in_keys, inputs, strict=True):
+            check_finite(str(key), value)
+        mean, uncertainty = mc_dropout_uncertainty(self.sample(*inputs), tau_inv=self.tau_inv)
+        confidence = machine_confidence(uncertainty, self.lam, self.delta2)
+        mean_key, uncertainty_key, confidence_key = self.out_keys
+        tensordict.set(mean_key, mean)
+        tensordict.set(uncertainty_key, uncertainty)
+        tensordict.set(confidence_key, confidence)
+        return tensordict

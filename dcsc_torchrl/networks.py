@@ -1,0 +1,95 @@
+"""The networks of both tasks, built in one place for pretraining and shared control."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+
+class FirstDims(nn.Module):
+    """Keeps the first ``n`` entries of the last dim (the machine's view of the state).
+
+    On TargetLunarLander the machine sees the 8 standard values, not the pad's x
+    (DESIGN §4: the operator knows the target, the machine does not).
+    """
+
+    def __init__(self, n: int) -> None:
+        super().__init__()
+        self.n = n
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x[..., : self.n]
+
+    def extra_repr(self) -> str:
+        return f"n={self.n}"
+
+
+class ScaledTanh(nn.Module):
+    """Maps R to the box ``[low, high]`` with a tanh (the DDPG actor's output layer)."""
+
+    def __init__(self, low: float | torch.Tensor, high: float | torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("low", torch.as_tensor(low, dtype=torch.float32))
+        self.register_buffer("high", torch.as_tensor(high, dtype=torch.float32))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.low + (torch.tanh(x) + 1) * 0.5 * (self.high - self.low)
+
+
+class ConcatInputs(nn.Module):
+    """Concatenates its inputs on the last dim, then applies ``net`` (Q(s, a) critics)."""
+
+    def __init__(self, net: nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat(inputs, dim=-1))
+
+
+def mlp(
+    in_dims: int,
+    out_dims: int,
+    hidden: Sequence[int],
+    *,
+    dropout: float = 0.0,
+    activation: type[nn.Module] = nn.Tanh,
+) -> nn.Sequential:
+    """An MLP; with ``dropout > 0`` a dropout layer follows every hidden activation.
+
+    The dropout layers are what MC dropout samples (Eq. 10); the paper's Tables A1/A2
+    give their probability (0.01 for the A2C actor, 0.05 for the DDPG actor).
+    """
+    if not 0.0 <= dropout < 1.0:
+        raise ValueError(f"dropout must be in [0, 1), got {dropout!r}")
+    layers: list[nn.Module] = []
+    width = in_dims
+    for size in hidden:
+        layers += [nn.Linear(width, size), activation()]
+        if dropout > 0:
+            layers.append(nn.Dropout(dropout))
+        width = size
+    layers.append(nn.Linear(width, out_dims))
+    return nn.Sequential(*layers)
+
+
+def lunar_actor(hidden: Sequence[int], dropout: float, *, obs_dims: int = 8, n_actions: int = 4) -> nn.Sequential:
+    """TargetLunarLander actor: the first ``obs_dims`` values -> action logits."""
+    return nn.Sequential(FirstDims(obs_dims), mlp(obs_dims, n_actions, hidden, dropout=dropout))
+
+
+def lunar_critic(hidden: Sequence[int], out_dims: int, *, obs_dims: int = 8) -> nn.Sequential:
+    """TargetLunarLander critic: V(s) (``out_dims=1``) or Q(s, .) (``out_dims=4``)."""
+    return nn.Sequential(FirstDims(obs_dims), mlp(obs_dims, out_dims, hidden))
+
+
+def uav_actor(hidden: Sequence[int], dropout: float, *, low: float = 0.0, high: float = 3.0) -> nn.Sequential:
+    """UAV actor: the 9-value observation -> (rho0, sigma0, tau) in ``[low, high]``."""
+    return nn.Sequential(mlp(9, 3, hidden, dropout=dropout, activation=nn.ReLU), ScaledTanh(low, high))
+
+
+def uav_critic(hidden: Sequence[int]) -> ConcatInputs:
+    """UAV critic Q(s, a) on the concatenated observation (9) and action (3)."""
+    return ConcatInputs(mlp(12, 1, hidden, activation=nn.ReLU))

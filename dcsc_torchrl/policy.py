@@ -1,0 +1,127 @@
+"""The shared policy of Eq. 14: MC-dropout machine -> arbiter -> blend (-> sample)."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import torch
+from tensordict.nn import (
+    InteractionType,
+    ProbabilisticTensorDictModule,
+    TensorDictModule,
+    TensorDictSequential,
+)
+from torch import nn
+from torchrl.data import Bounded, OneHot, TensorSpec
+from torchrl.modules import OneHotCategorical
+
+from dcsc_torchrl.arbiters import Arbiter
+from dcsc_torchrl.machine import MCDropoutPolicy
+
+
+class PolicyBlend(nn.Module):
+    """Eq. 14: ``beta * machine + (1 - beta) * human``, optionally clipped to a box.
+
+    Discrete: ``machine`` and ``human`` are distributions over actions (the operator's
+    one-hot key is a point mass), the result is the mixture's probabilities.
+    Continuous: they are actions and the result is the blended action, clipped to
+    ``[low, high]`` when given.
+    """
+
+    def __init__(self, low: torch.Tensor | None = None, high: torch.Tensor | None = None) -> None:
+        super().__init__()
+        self.register_buffer("low", None if low is None else torch.as_tensor(low))
+        self.register_buffer("high", None if high is None else torch.as_tensor(high))
+
+    def forward(self, beta: torch.Tensor, machine: torch.Tensor, human: torch.Tensor) -> torch.Tensor:
+        human = human.to(machine.dtype)
+        blended = beta * machine + (1 - beta) * human
+        if self.low is not None:
+            blended = torch.maximum(torch.minimum(blended, self.high), self.low)
+        return blended
+
+
+class SharedPolicyModule(TensorDictSequential):
+    """DC-SC's shared policy (Eq. 14) as one TensorDict module, ready for a Collector.
+
+    Named parts, in order (``policy["arbiter"]`` etc.):
+
+    - ``machine``: the :class:`~dcsc_torchrl.machine.MCDropoutPolicy` (Eqs. 10, 13);
+    - ``arbiter``: any :class:`~dcsc_torchrl.arbiters.Arbiter` (Eqs. 15, 18);
+    - ``blend``: :class:`PolicyBlend` (Eq. 14);
+    - discrete only, ``sample``: a probabilistic module drawing the one-hot ``action``
+      from ``OneHotCategorical(probs)`` (Algorithm 1, line 7: actions are sampled).
+
+    Discrete when ``action_spec`` is ``OneHot`` (the machine must output ``"probs"``);
+    continuous when it is ``Bounded`` (the machine outputs ``"action"``, the blend is
+    clipped to the box). The human action is read from ``human_action``, written by
+    :class:`~dcsc_torchrl.transforms.HumanOperatorTransform`.
+
+    Args:
+        machine: the MC-dropout machine policy.
+        arbiter: the arbiter deciding beta.
+        action_spec: the environment's action spec (``OneHot`` or ``Bounded``).
+        action_key: where the shared action is written.
+        human_action_key: where the operator's action is read.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import OneHot
+        >>> from dcsc_torchrl.arbiters import ConfidenceArbiter
+        >>> net = torch.nn.Sequential(torch.nn.Linear(9, 16), torch.nn.Dropout(0.1),
+        ...                           torch.nn.Linear(16, 4))
+        >>> policy = SharedPolicyModule(MCDropoutPolicy(net), ConfidenceArbiter(), OneHot(4))
+        >>> td = TensorDict({"observation": torch.randn(9),
+        ...                  "human_action": torch.tensor([0, 0, 1, 0]),
+        ...                  "human_confidence": torch.tensor([0.3])}, [])
+        >>> policy(td)["action"].shape
+        torch.Size([4])
+    """
+
+    def __init__(
+        self,
+        machine: MCDropoutPolicy,
+        arbiter: Arbiter,
+        action_spec: TensorSpec,
+        *,
+        action_key: str = "action",
+        human_action_key: str = "human_action",
+    ) -> None:
+        mean_key, _, confidence_key = machine.out_keys
+        if confidence_key != arbiter.in_keys[0]:
+            raise ValueError(
+                f"the arbiter reads machine confidence from {arbiter.in_keys[0]!r} but the "
+                f"machine writes it to {confidence_key!r}"
+            )
+        beta_key = arbiter.out_keys[1]
+        parts: OrderedDict[str, nn.Module] = OrderedDict(machine=machine, arbiter=arbiter)
+        if isinstance(action_spec, OneHot):
+            if machine.output != "probs":
+                raise ValueError("a OneHot action spec needs a machine with output='probs'")
+            parts["blend"] = TensorDictModule(
+                PolicyBlend(), in_keys=[beta_key, mean_key, human_action_key], out_keys=["probs"]
+            )
+            parts["sample"] = ProbabilisticTensorDictModule(
+                in_keys=["probs"],
+                out_keys=[action_key],
+                distribution_class=OneHotCategorical,
+                default_interaction_type=InteractionType.RANDOM,
+            )
+        elif isinstance(action_spec, Bounded):
+            if machine.output != "action":
+                raise ValueError("a Bounded action spec needs a machine with output='action'")
+            if arbiter.dims not in (1, action_spec.shape[-1]):
+                raise ValueError(
+                    f"arbiter.dims={arbiter.dims} must be 1 or the action size {action_spec.shape[-1]}"
+                )
+            box = PolicyBlend(action_spec.space.low, action_spec.space.high)
+            parts["blend"] = TensorDictModule(
+                box, in_keys=[beta_key, mean_key, human_action_key], out_keys=[action_key]
+            )
+        else:
+            raise TypeError(
+                f"action_spec must be OneHot (discrete) or Bounded (continuous), got {type(action_spec).__name__}"
+            )
+        super().__init__(parts)
+        self.discrete = isinstance(action_spec, OneHot)

@@ -1,0 +1,68 @@
+"""The two tasks as batched TorchRL environments, built the same way by every recipe."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import torch
+from envs.uav import UAVPathPlanningEnv
+from gymnasium.vector import AutoresetMode
+from torchrl.data import Categorical, Composite
+from torchrl.envs import (
+    Compose,
+    EnvBase,
+    GymWrapper,
+    RewardSum,
+    StepCounter,
+    Transform,
+    TransformedEnv,
+)
+from torchrl.envs.libs.gym import default_info_dict_reader
+
+import envs  # noqa: F401  (registers the dcsc/* gymnasium ids)
+
+LUNAR_ID = "dcsc/TargetLunarLander-v0"
+LUNAR_INFO_KEYS = ("success", "crashed", "landed_outside")
+UAV_INFO_KEYS = ("success", "collision", "out_of_bounds", "path_length")
+
+
+def make_lunar_env(
+    num_envs: int,
+    *,
+    random_pad: bool = True,
+    transforms: list[Transform] | None = None,
+) -> TransformedEnv:
+    """``num_envs`` TargetLunarLanders stepped by one TorchRL call.
+
+    A gymnasium ``SyncVectorEnv`` (same-step autoreset, as TorchRL expects) under
+    ``GymWrapper``, with ``success`` / ``crashed`` / ``landed_outside`` read from
+    ``info``, then ``transforms`` (e.g. the operator's), ``RewardSum`` and
+    ``StepCounter``. ``render_mode`` stays ``None`` (DESIGN §7).
+    """
+    if num_envs < 1:
+        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+    vector = gym.make_vec(
+        LUNAR_ID,
+        num_envs=num_envs,
+        vectorization_mode="sync",
+        vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP},
+        random_pad=random_pad,
+    )
+    base = GymWrapper(vector)
+    info_spec = Composite(
+        {key: Categorical(2, shape=(num_envs, 1), dtype=torch.bool) for key in LUNAR_INFO_KEYS},
+        shape=[num_envs],
+    )
+    base.set_info_dict_reader(default_info_dict_reader(list(LUNAR_INFO_KEYS), spec=info_spec))
+    return TransformedEnv(base, Compose(*(transforms or []), RewardSum(), StepCounter()))
+
+
+def make_uav_env(
+    num_envs: int,
+    *,
+    scenario_seeds: list[int] | None = None,
+    device: str | torch.device = "cpu",
+    transforms: list[Transform] | None = None,
+) -> TransformedEnv:
+    """``num_envs`` UAV scenarios as one native batched TorchRL env (+ transforms, RewardSum, StepCounter)."""
+    base: EnvBase = UAVPathPlanningEnv(batch_size=[num_envs], scenario_seeds=scenario_seeds, device=device)
+    return TransformedEnv(base, Compose(*(transforms or []), RewardSum(), StepCounter()))

@@ -1,0 +1,220 @@
+"""What every recipe shares: arguments, the run directory, episode logging, checkpoints, resume.
+
+A recipe (``recipes/*.py``) owns its algorithm; a :class:`TrainingRun` owns the
+bookkeeping around it. Training is cut into *segments* of ``checkpoint_every`` episodes:
+each segment starts from freshly reset, freshly seeded environments and ends with an
+atomic checkpoint. Because nothing in flight crosses a segment boundary, a run resumed
+from a checkpoint replays exactly the rows an uninterrupted run writes (same seed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+from tqdm.auto import tqdm
+
+from dcsc_torchrl.checkpoint import (
+    load_checkpoint,
+    load_module_state,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
+from dcsc_torchrl.config import load_config, to_plain
+from dcsc_torchrl.runlog import RunLog, plot_learning_curve
+
+
+@dataclass
+class RecipeArgs:
+    """A recipe's command line: ``[--quick] [--resume] [--out DIR] [key=value ...]``."""
+
+    quick: bool = False
+    resume: bool = False
+    out: Path | None = None
+    overrides: list[str] = field(default_factory=list)
+
+
+def parse_recipe_args(argv: Sequence[str] | None, description: str) -> RecipeArgs:
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--quick", action="store_true", help="the tiny setting (tests, QUICK=1)")
+    parser.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
+    parser.add_argument("--out", type=Path, default=None, help="run directory (default: logger.out_dir)")
+    parser.add_argument("overrides", nargs="*", help="config overrides, hydra style: optim.lr=1e-3")
+    ns = parser.parse_args(argv)
+    return RecipeArgs(ns.quick, ns.resume, ns.out, list(ns.overrides))
+
+
+def recipe_config(config_path: str | os.PathLike, args: RecipeArgs) -> DictConfig:
+    """The recipe's config with ``--quick`` and the overrides applied; ``--out`` wins."""
+    cfg = load_config(config_path, args.overrides, quick=args.quick)
+    if args.out is not None:
+        cfg.logger.out_dir = str(args.out)
+    return cfg
+
+
+def finished_episodes(batch: TensorDictBase, extra_keys: Sequence[str] = ()) -> list[dict[str, Any]]:
+    """One dict per episode that ended in ``batch`` (``[*envs, time]``).
+
+    Reads ``("next", "episode_reward")`` (TorchRL's ``RewardSum``) and
+    ``("next", "step_count")`` (``StepCounter``) on done frames, plus any ``extra_keys``
+    under ``"next"`` (e.g. ``success``).
+    """
+    nxt = batch.get("next")
+    done = nxt.get("done").squeeze(-1)
+    if not done.any():
+        return []
+    rows = []
+    returns = nxt.get("episode_reward")[done].squeeze(-1).tolist()
+    lengths = nxt.get("step_count")[done].squeeze(-1).tolist()
+    extras = {key: nxt.get(key)[done].squeeze(-1).tolist() for key in extra_keys}
+    for i, (ret, length) in enumerate(zip(returns, lengths, strict=True)):
+        rows.append({"return": float(ret), "length": int(length), **{k: v[i] for k, v in extras.items()}})
+    return rows
+
+
+def first_episodes(rollout: TensorDictBase, extra_keys: Sequence[str] = ()) -> list[dict[str, Any]]:
+    """The first episode of every env of a ``[envs, time]`` rollout (envs that never finished are skipped).
+
+    With autoresetting batched envs a rollout runs on past an env's first episode; the
+    evaluation protocol counts exactly one episode per env (one env = one scenario).
+    """
+    done = rollout.get(("next", "done")).squeeze(-1)
+    rows = []
+    for env_index in range(done.shape[0]):
+        steps = done[env_index].nonzero()
+        if len(steps) == 0:
+            continue
+        frame = rollout[env_index, int(steps[0])]
+        nxt = frame.get("next")
+        rows.append({
+            "env": env_index,
+            "return": float(nxt.get("episode_reward")),
+            "length": int(nxt.get("step_count")),
+            **{key: nxt.get(key).item() for key in extra_keys},
+        })
+    return rows
+
+
+class TrainingRun:
+    """Run directory, CSV log, progress bar, checkpoints and resume of one training run.
+
+    Args:
+        task: ``"lunarlander"`` or ``"uav"`` (written into every checkpoint).
+        cfg: the run's config; ``cfg.logger.out_dir``, ``cfg.train.episodes``,
+            ``cfg.train.checkpoint_every`` and ``cfg.seed`` are read.
+        columns: the CSV's columns; must start with ``episode`` and ``frames``.
+        stateful: objects with ``state_dict`` / ``load_state_dict`` saved in each
+            checkpoint (networks, optimisers, replay buffers), by name.
+    """
+
+    def __init__(
+        self,
+        task: str,
+        cfg: DictConfig,
+        columns: list[str],
+        stateful: Mapping[str, Any],
+    ) -> None:
+        if columns[:2] != ["episode", "frames"]:
+            raise ValueError(f"columns must start with ['episode', 'frames'], got {columns[:2]}")
+        self.task = task
+        self.cfg = cfg
+        self.out_dir = Path(cfg.logger.out_dir)
+        self.total_episodes = int(cfg.train.episodes)
+        self.checkpoint_every = int(cfg.train.checkpoint_every)
+        if self.total_episodes < 1 or self.checkpoint_every < 1:
+            raise ValueError(
+                f"train.episodes and train.checkpoint_every must be >= 1, got "
+                f"{self.total_episodes} and {self.checkpoint_every}"
+            )
+        self.stateful = dict(stateful)
+        self.log = RunLog(self.out_dir / "train.csv", columns)
+        self.checkpoint_path = self.out_dir / "checkpoint.pt"
+        self.episodes = 0
+        self.frames = 0
+        self.segment = 0
+        self._progress: tqdm | None = None
+
+    # -- resume ---------------------------------------------------------------------
+    def start(self, *, resume: bool) -> None:
+        """Starts fresh (removing an old log) or resumes from the last checkpoint."""
+        if resume:
+            self._restore(load_checkpoint(self.checkpoint_path, task=self.task))
+        else:
+            self.log.path.unlink(missing_ok=True)
+        self._progress = tqdm(
+            total=self.total_episodes, initial=self.episodes, desc=f"{self.task} episodes", unit="ep",
+            disable=None,
+        )
+
+    def _restore(self, data: dict[str, Any]) -> None:
+        for name, obj in self.stateful.items():
+            if name not in data["state"]:
+                raise ValueError(f"checkpoint {self.checkpoint_path} has no state for {name!r}")
+            if isinstance(obj, torch.nn.Module):
+                load_module_state(obj, data["state"][name], name=name)
+            else:
+                obj.load_state_dict(data["state"][name])
+        self.episodes, self.frames, self.segment = data["episodes"], data["frames"], data["segment"]
+        set_rng_state(data["rng"])
+        self.log.truncate("episode", self.episodes)
+
+    # -- the loop -------------------------------------------------------------------
+    @property
+    def done(self) -> bool:
+        return self.episodes >= self.total_episodes
+
+    def segment_seed(self) -> int:
+        """The env seed of the current segment (fresh, distinct per segment)."""
+        return int(self.cfg.seed) * 100_003 + self.segment
+
+    @property
+    def segment_done(self) -> bool:
+        return self.done or self.episodes >= (self.segment + 1) * self.checkpoint_every
+
+    def record(self, frames: int, episodes: list[dict[str, Any]], metrics: Mapping[str, float]) -> None:
+        """Counts ``frames``, logs one CSV row per finished episode (up to the budget)."""
+        self.frames += frames
+        for row in episodes:
+            if self.done:
+                break
+            self.episodes += 1
+            self.log.append({"episode": self.episodes, "frames": self.frames, **row, **metrics})
+            self._progress.update(1)
+        if episodes:
+            self._progress.set_postfix(ret=f"{episodes[-1]['return']:.1f}", frames=self.frames)
+
+    def end_segment(self) -> None:
+        """Closes the segment with an atomic checkpoint."""
+        self.segment += 1
+        self.save()
+
+    def save(self) -> None:
+        state = {}
+        for name, obj in self.stateful.items():
+            state[name] = obj.state_dict()
+        save_checkpoint(
+            self.checkpoint_path,
+            task=self.task,
+            payload={
+                "state": state,
+                "episodes": self.episodes,
+                "frames": self.frames,
+                "segment": self.segment,
+                "rng": rng_state(),
+                "config": to_plain(self.cfg),
+            },
+        )
+
+    def finish(self, title: str) -> Path:
+        """Closes the progress bar and draws the learning curve PNG."""
+        if self._progress is not None:
+            self._progress.close()
+        return plot_learning_curve(self.log.path, self.out_dir / "learning_curve.png", title=title)

@@ -1,0 +1,239 @@
+"""The human side of DC-SC as environment transforms (DESIGN §3).
+
+From the agent's point of view the operator's action is part of what it observes, so
+the operator lives on the environment side:
+
+- :class:`HumanOperatorTransform` asks an operator (simulated or a person) for its
+  action on every frame and writes ``human_action``, ``human_rt``, ``human_decided``;
+- :class:`HumanConfidenceTransform` keeps the operator's knowledge level per
+  environment (Eq. 6, updated on decision frames) and writes ``knowledge`` and
+  ``human_confidence`` (Eq. 9).
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+from dcsc_torchrl.confidence import (
+    check_finite,
+    check_in_range,
+    human_confidence,
+    knowledge_update,
+)
+
+
+@runtime_checkable
+class HumanOperator(Protocol):
+    """What an operator is (DESIGN §3).
+
+    ``__call__`` receives the environment's TensorDict for the whole batch: every
+    observation key the env writes (``observation`` holds the full state, the target
+    included) plus ``is_init`` (``[*batch, 1]`` bool, True on an episode's first
+    frame, where the operator must drop what it held). It returns a TensorDict with
+    ``human_action`` (one-hot ``[*batch, n]`` or ``[*batch, d]``), ``human_rt``
+    (``[*batch, 1]`` seconds) and ``human_decided`` (``[*batch, 1]`` bool: a new
+    decision on this frame).
+    """
+
+    def reset(self, seed: int | None) -> None:
+        """Re-seeds the operator's random state and forgets everything it held."""
+
+    def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Decides the operator's action for every environment of the batch."""
+
+
+def _reset_mask(transform: Transform, tensordict: TensorDictBase, batch_shape: torch.Size) -> torch.Tensor:
+    """The ``[*batch, 1]`` bool mask of the environments being reset."""
+    reset = None
+    if tensordict is not None:
+        reset = tensordict.get(transform.parent.reset_keys[0], None)
+    if reset is None:
+        return torch.ones(*batch_shape, 1, dtype=torch.bool)
+    return reset.reshape(*batch_shape, 1)
+
+
+class HumanOperatorTransform(Transform):
+    """Writes the operator's decision keys on every frame (reset and step).
+
+    Args:
+        operator: any :class:`HumanOperator`.
+        seed: the operator's seed, used at the first reset (``set_seed`` re-seeds).
+        action_key: the env's action key; ``human_action`` gets its spec.
+        out_keys: ``human_action``, ``human_rt``, ``human_decided``.
+
+    Examples:
+        >>> from torchrl.envs import GymEnv, TransformedEnv
+        >>> from dcsc_torchrl.humans import RandomOperator
+        >>> env = TransformedEnv(GymEnv("LunarLander-v3"),
+        ...                      HumanOperatorTransform(RandomOperator(n_actions=4), seed=0))
+        >>> td = env.reset()
+        >>> sorted(k for k in td.keys() if k.startswith("human"))
+        ['human_action', 'human_decided', 'human_rt']
+    """
+
+    def __init__(
+        self,
+        operator: HumanOperator,
+        *,
+        seed: int | None = None,
+        action_key: str = "action",
+        out_keys: tuple[str, str, str] = ("human_action", "human_rt", "human_decided"),
+    ) -> None:
+        if not isinstance(operator, HumanOperator):
+            raise TypeError(
+                f"operator must have reset(seed) and __call__(tensordict); got {type(operator).__name__}"
+            )
+        super().__init__(in_keys=["observation"], out_keys=list(out_keys))
+        self.operator = operator
+        self.seed = seed
+        self.action_key = action_key
+        self._seeded = False
+
+    def set_seed(self, seed: int | None) -> None:
+        """Re-seeds the operator (its RNG state is its own, not the env's)."""
+        self.seed = seed
+        self.operator.reset(seed)
+        self._seeded = True
+
+    def _ask(self, tensordict: TensorDictBase, is_init: torch.Tensor) -> TensorDictBase:
+        if not self._seeded:
+            self.set_seed(self.seed)
+        query = tensordict.copy()
+        query.set("is_init", is_init)
+        answer = self.operator(query)
+        action_key, rt_key, decided_key = self.out_keys
+        spec = self.parent.full_action_spec[self.action_key]
+        action = answer.get(action_key)
+        if action.shape != spec.shape:
+            raise ValueError(f"the operator's {action_key} has shape {tuple(action.shape)}, expected {tuple(spec.shape)}")
+        rt = answer.get(rt_key)
+        check_finite(rt_key, rt)
+        if (rt < 0).any():
+            raise ValueError(f"the operator's {rt_key} must be >= 0 seconds, got {rt.min().item()}")
+        tensordict.set(action_key, action.to(spec.dtype))
+        tensordict.set(rt_key, rt.to(torch.get_default_dtype()).reshape(*tensordict.batch_size, 1))
+        tensordict.set(decided_key, answer.get(decided_key).to(torch.bool).reshape(*tensordict.batch_size, 1))
+        return tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return self._ask(tensordict_reset, _reset_mask(self, tensordict, tensordict_reset.batch_size))
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        is_init = torch.zeros(*next_tensordict.batch_size, 1, dtype=torch.bool, device=next_tensordict.device)
+        return self._ask(next_tensordict, is_init)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        action_key, rt_key, decided_key = self.out_keys
+        shape = observation_spec.shape
+        device = observation_spec.device
+        observation_spec[action_key] = self.parent.full_action_spec[self.action_key].clone()
+        observation_spec[rt_key] = Unbounded(shape=(*shape, 1), device=device)
+        observation_spec[decided_key] = Categorical(2, shape=(*shape, 1), dtype=torch.bool, device=device)
+        return observation_spec
+
+
+class HumanConfidenceTransform(Transform):
+    """Keeps the operator's knowledge k per env (Eq. 6) and writes b_h(k) (Eq. 9).
+
+    k starts at ``k0`` on every episode reset (a new scenario is a new task), or carries
+    over when ``persist=True``; it is updated by :func:`knowledge_update` only on frames
+    where ``human_decided`` is true, with that decision's ``human_rt``. ``knowledge`` is
+    declared in the observation and state specs (like TorchRL's ``StepCounter``), so it
+    survives partial resets and ``SerialEnv``.
+
+    Args:
+        p: probability of an impossible task (Eq. 7), in [0, 1).
+        eta: eta of Eq. 7, in (0, 1).
+        delta1: delta_1 of Eq. 8, > 0.
+        K: the knowledge cap of Eq. 6 (task difficulty), > 0.
+        t_d: upper limit of a normal reaction time in seconds, > 0.
+        k0: knowledge at an episode's start, in [0, K].
+        mode: ``"decay"`` (default) or ``"paper"``, see :func:`knowledge_update`.
+        k_floor: floor for mode ``"paper"``.
+        persist: carry k across episodes instead of restarting at k0.
+        in_keys: ``human_rt``, ``human_decided``.
+        out_keys: ``knowledge``, ``human_confidence``.
+    """
+
+    def __init__(
+        self,
+        p: float = 0.1,
+        eta: float = 0.6,
+        delta1: float = 2.0,
+        K: float = 20.0,
+        t_d: float = 1.0,
+        k0: float = 0.05,
+        mode: str = "decay",
+        *,
+        k_floor: float = 1e-3,
+        persist: bool = False,
+        in_keys: tuple[str, str] = ("human_rt", "human_decided"),
+        out_keys: tuple[str, str] = ("knowledge", "human_confidence"),
+    ) -> None:
+        super().__init__(in_keys=list(in_keys), out_keys=list(out_keys))
+        check_in_range("p", p, 0.0, 1.0, low_inclusive=True, high_inclusive=False)
+        check_in_range("eta", eta, 0.0, 1.0, low_inclusive=False, high_inclusive=False)
+        check_in_range("delta1", delta1, 0.0, float("inf"), low_inclusive=False, high_inclusive=False)
+        check_in_range("K", K, 0.0, float("inf"), low_inclusive=False, high_inclusive=False)
+        check_in_range("t_d", t_d, 0.0, float("inf"), low_inclusive=False, high_inclusive=False)
+        check_in_range("k0", k0, 0.0, K, low_inclusive=True, high_inclusive=True)
+        if mode not in ("decay", "paper"):
+            raise ValueError(f"mode must be 'decay' or 'paper', got {mode!r}")
+        self.p, self.eta, self.delta1 = p, eta, delta1
+        self.K, self.t_d, self.k0 = K, t_d, k0
+        self.mode, self.k_floor, self.persist = mode, k_floor, persist
+
+    def _write(self, tensordict: TensorDictBase, knowledge: torch.Tensor) -> TensorDictBase:
+        knowledge_key, confidence_key = self.out_keys
+        tensordict.set(knowledge_key, knowledge)
+        tensordict.set(confidence_key, human_confidence(knowledge, self.p, self.eta, self.delta1))
+        return tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        batch = tensordict_reset.batch_size
+        reset = _reset_mask(self, tensordict, batch)
+        fresh = torch.full((*batch, 1), float(self.k0), device=reset.device)
+        previous = None if tensordict is None else tensordict.get(self.out_keys[0], None)
+        if previous is None:
+            knowledge = fresh
+        elif self.persist:
+            knowledge = previous.reshape(*batch, 1)
+        else:
+            knowledge = torch.where(reset, fresh, previous.reshape(*batch, 1))
+        return self._write(tensordict_reset, knowledge)
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        knowledge_key = self.out_keys[0]
+        previous = tensordict.get(knowledge_key, None)
+        if previous is None:
+            raise KeyError(
+                f"{knowledge_key!r} is missing from the step input: step with the TensorDict "
+                "returned by reset()/step_mdp so the knowledge level is carried"
+            )
+        rt_key, decided_key = self.in_keys
+        decided = next_tensordict.get(decided_key)
+        updated = knowledge_update(
+            previous, next_tensordict.get(rt_key), self.K, self.t_d, mode=self.mode, k_floor=self.k_floor
+        )
+        return self._write(next_tensordict, torch.where(decided, updated, previous))
+
+    def _knowledge_spec(self, shape: torch.Size, device: torch.device | None) -> Bounded:
+        return Bounded(0.0, float(self.K), shape=(*shape, 1), device=device)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        knowledge_key, confidence_key = self.out_keys
+        shape, device = observation_spec.shape, observation_spec.device
+        observation_spec[knowledge_key] = self._knowledge_spec(shape, device)
+        observation_spec[confidence_key] = Bounded(0.0, 1.0, shape=(*shape, 1), device=device)
+        return observation_spec
+
+    def transform_input_spec(self, input_spec: Composite) -> Composite:
+        if input_spec["full_state_spec"] is None:
+            input_spec["full_state_spec"] = Composite(shape=input_spec.shape, device=input_spec.device)
+        input_spec["full_state_spec"][self.out_keys[0]] = self._knowledge_spec(input_spec.shape, input_spec.device)
+        return input_spec
