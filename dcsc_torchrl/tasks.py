@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import gymnasium as gym
 import torch
-from envs.uav import UAVPathPlanningEnv
 from gymnasium.vector import AutoresetMode
 from torchrl.data import Categorical, Composite
 from torchrl.envs import (
@@ -64,5 +63,7 @@ def make_uav_env(
     transforms: list[Transform] | None = None,
 ) -> TransformedEnv:
     """``num_envs`` UAV scenarios as one native batched TorchRL env (+ transforms, RewardSum, StepCounter)."""
-    base: EnvBase = UAVPathPlanningEnv(batch_size=[num_envs], scenario_seeds=scenario_seeds, device=device)
+    from envs.uav import UAVPathPlanningEnv
+
+    base: EnvBase = UAVPathPlanningEnv(num_envs, scenario_seeds=scenario_seeds, device=device)
     return TransformedEnv(base, Compose(*(transforms or []), RewardSum(), StepCounter()))

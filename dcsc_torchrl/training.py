@@ -19,6 +19,9 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
 from dcsc_torchrl.checkpoint import (
@@ -72,9 +75,9 @@ def finished_episodes(batch: TensorDictBase, extra_keys: Sequence[str] = ()) -> 
     if not done.any():
         return []
     rows = []
-    returns = nxt.get("episode_reward")[done].squeeze(-1).tolist()
-    lengths = nxt.get("step_count")[done].squeeze(-1).tolist()
-    extras = {key: nxt.get(key)[done].squeeze(-1).tolist() for key in extra_keys}
+    returns = nxt.get("episode_reward")[done].reshape(-1).tolist()
+    lengths = nxt.get("step_count")[done].reshape(-1).tolist()
+    extras = {key: nxt.get(key)[done].reshape(-1).tolist() for key in extra_keys}
     for i, (ret, length) in enumerate(zip(returns, lengths, strict=True)):
         rows.append({"return": float(ret), "length": int(length), **{k: v[i] for k, v in extras.items()}})
     return rows
@@ -101,6 +104,24 @@ def first_episodes(rollout: TensorDictBase, extra_keys: Sequence[str] = ()) -> l
             **{key: nxt.get(key).item() for key in extra_keys},
         })
     return rows
+
+
+def evaluate(
+    env: EnvBase, policy: TensorDictModuleBase, max_steps: int, extra_keys: Sequence[str] = ()
+) -> list[dict[str, Any]]:
+    """One greedy episode per env: eval mode (no dropout), deterministic actions.
+
+    As TorchRL's sota-implementations evaluate: under
+    ``set_exploration_type(ExplorationType.DETERMINISTIC)``, without gradients.
+    """
+    was_training = policy.training
+    policy.eval()
+    try:
+        with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+            rollout = env.rollout(max_steps, policy, break_when_any_done=False)
+    finally:
+        policy.train(was_training)
+    return first_episodes(rollout, extra_keys)
 
 
 class TrainingRun:

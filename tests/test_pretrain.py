@@ -1,0 +1,98 @@
+"""The pretraining recipes' tiny settings, end to end: outputs, resume, atomic checkpoints."""
+
+from __future__ import annotations
+
+import importlib
+import math
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+
+from dcsc_torchrl.checkpoint import load_checkpoint, save_checkpoint
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPES = {
+    "lunarlander": "recipes.pretrain_a2c_lunarlander",
+    "uav": "recipes.pretrain_ddpg_uav",
+}
+COLUMNS = {
+    "lunarlander": ["episode", "frames", "return", "length", "success", "loss_objective", "loss_critic",
+                    "loss_entropy", "loss_qvalue"],
+    "uav": ["episode", "frames", "return", "length", "success", "loss_actor", "loss_value"],
+}
+
+
+def run_recipe(task: str, out: Path, *extra: str) -> None:
+    importlib.import_module(RECIPES[task]).main(["--quick", "--out", str(out), *extra])
+
+
+@pytest.mark.parametrize("task", sorted(RECIPES))
+def test_tiny_recipe_writes_checkpoint_csv_and_png(task, tmp_path):
+    run_recipe(task, tmp_path)
+    log = pd.read_csv(tmp_path / "train.csv")
+    assert list(log.columns) == COLUMNS[task]
+    assert len(log) >= 1 and log["episode"].tolist() == list(range(1, len(log) + 1))
+    assert log["return"].map(math.isfinite).all()
+    assert (log["frames"].diff().dropna() >= 0).all()
+    assert (tmp_path / "learning_curve.png").stat().st_size > 1000
+    ckpt = load_checkpoint(tmp_path / "checkpoint.pt", task=task)
+    assert ckpt["episodes"] == len(log) and ckpt["config"]["train"]["episodes"] == len(log)
+    assert "actor" in ckpt["state"]
+    evaluation = pd.read_csv(tmp_path / "eval.csv")
+    assert evaluation["return"].map(math.isfinite).all()
+
+
+@pytest.mark.parametrize("task", sorted(RECIPES))
+def test_resume_from_a_halfway_checkpoint_gives_the_same_rows(task, tmp_path):
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    run_recipe(task, straight)
+    total = len(pd.read_csv(straight / "train.csv"))
+    half = int(load_checkpoint(straight / "checkpoint.pt", task=task)["config"]["train"]["checkpoint_every"])
+    assert half < total
+    run_recipe(task, resumed, f"train.episodes={half}")
+    assert len(pd.read_csv(resumed / "train.csv")) == half
+    run_recipe(task, resumed, "--resume")
+    pd.testing.assert_frame_equal(pd.read_csv(resumed / "train.csv"), pd.read_csv(straight / "train.csv"))
+
+
+def test_loading_a_uav_checkpoint_into_the_lunarlander_recipe_fails_clearly(tmp_path):
+    save_checkpoint(tmp_path / "checkpoint.pt", task="uav", payload={"state": {}})
+    with pytest.raises(ValueError, match="written for task 'uav'.*task 'lunarlander'"):
+        run_recipe("lunarlander", tmp_path, "--resume")
+
+
+def test_a_checkpoint_of_the_wrong_shape_is_refused(tmp_path):
+    run_recipe("lunarlander", tmp_path, "train.episodes=3")
+    with pytest.raises(ValueError, match="does not fit this network"):
+        run_recipe("lunarlander", tmp_path, "--resume", "network.hidden=[32,32]")
+
+
+def test_sigkill_while_checkpointing_leaves_the_previous_checkpoint_loadable(tmp_path):
+    target = tmp_path / "checkpoint.pt"
+    save_checkpoint(target, task="uav", payload={"state": {"w": torch.zeros(3)}, "step": -1})
+    writer = textwrap.dedent(
+        f"""
+        import torch
+        from dcsc_torchrl.checkpoint import save_checkpoint
+        big = torch.randn(4_000_000)
+        step = 0
+        while True:
+            save_checkpoint({str(target)!r}, task="uav", payload={{"state": {{"w": big}}, "step": step}})
+            print(step, flush=True)
+            step += 1
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", writer], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    proc.stdout.readline()  # one full checkpoint is on disk; the next one is being written
+    time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    data = load_checkpoint(target, task="uav")
+    assert data["step"] >= 0 and data["state"]["w"].shape == (4_000_000,)
