@@ -93,3 +93,29 @@ def uav_actor(hidden: Sequence[int], dropout: float, *, low: float = 0.0, high: 
 def uav_critic(hidden: Sequence[int]) -> ConcatInputs:
     """UAV critic Q(s, a) on the concatenated observation (9) and action (3)."""
     return ConcatInputs(mlp(12, 1, hidden, activation=nn.ReLU))
+
+
+def machine_from_checkpoint(data: dict, task: str) -> tuple[nn.Module, nn.Module]:
+    """The pretrained machine actor and its Q critic from a loaded pretraining checkpoint.
+
+    ``data`` is what :func:`dcsc_torchrl.checkpoint.load_checkpoint` returned for
+    ``task``; the networks are rebuilt from the checkpoint's own config, loaded, and put
+    in eval mode. For LunarLander the critic is the Q network ``Q(s, .)`` trained beside
+    A2C; for the UAV it is DDPG's ``Q(s, a)``.
+    """
+    from dcsc_torchrl.checkpoint import load_module_state
+
+    network = data["config"]["network"]
+    if task == "lunarlander":
+        actor = lunar_actor(network["hidden"], network["actor_dropout"])
+        critic: nn.Module = lunar_critic(network["hidden"], 4)
+        names = ("actor", "qvalue")
+    elif task == "uav":
+        actor = uav_actor(network["hidden"], network["actor_dropout"])
+        critic = uav_critic(network["hidden"])
+        names = ("actor", "critic")
+    else:
+        raise ValueError(f"task must be 'lunarlander' or 'uav', got {task!r}")
+    load_module_state(actor, data["state"][names[0]], name=names[0])
+    load_module_state(critic, data["state"][names[1]], name=names[1])
+    return actor.eval(), critic.eval()

@@ -84,7 +84,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
         nonlocal updates_owed
         buffer.extend(batch.reshape(-1).select("observation", "action", "next").clone())
         exploration.step(batch.numel())
-        metrics = {"loss_actor": float("nan"), "loss_value": float("nan")}
+        metrics: dict[str, float] = {}  # no update yet: the loss columns stay empty
         if len(buffer) < cfg.collector.init_random_frames:
             return metrics
         updates_owed += cfg.optim.updates_per_frame * batch.numel()

@@ -1,0 +1,114 @@
+"""The shared-control protocol end to end (quick scale), and Algorithm 1's online update."""
+
+from __future__ import annotations
+
+import math
+
+import pandas as pd
+import pytest
+import torch
+from torchrl.collectors import Collector
+
+from dcsc_torchrl.checkpoint import load_checkpoint
+from dcsc_torchrl.config import load_config
+from dcsc_torchrl.experiment import OnlineLearner, build_policy, make_arbiter, make_env
+from dcsc_torchrl.networks import machine_from_checkpoint
+from recipes.reproduce import reproduce
+from recipes.shared_control import RECIPES
+from recipes.shared_control import main as shared_control
+
+EPISODE_COLUMNS = {"task", "method", "operator", "pretrain_seed", "phase", "group", "seed", "success", "steps",
+                   "return", "path_length", "hula_threshold"}
+TRACE_COLUMNS = {"knowledge", "human_confidence", "machine_confidence", "confidence_ratio", "step", "reward"}
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    """``make reproduce QUICK=1``'s code path, run once in a scratch directory."""
+    root = tmp_path_factory.mktemp("reproduce")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(root)
+        summary = reproduce(quick=True)
+    return root, summary
+
+
+@pytest.mark.parametrize("task", ["lunarlander", "uav"])
+def test_quick_reproduce_writes_every_output(quick_run, task):
+    root, summary = quick_run
+    out = root / "results" / "quick" / task
+    episodes = pd.read_csv(out / "episodes.csv")
+    assert EPISODE_COLUMNS <= set(episodes.columns)
+    val = episodes[episodes["phase"] == "validation"]
+    assert set(val["method"]) == {"machine", "operator", "hula", "dcsc"}
+    assert set(val["group"]) == {1, 2}
+    assert val[["return", "steps", "hula_threshold"]].map(math.isfinite).all().all()
+    if task == "uav":
+        assert val["path_length"].map(math.isfinite).all()
+    trace = pd.read_csv(out / "trace.csv")
+    assert TRACE_COLUMNS <= set(trace.columns)
+    assert set(trace["method"]) == {"machine", "operator", "hula", "dcsc"}
+    numeric = trace.select_dtypes("number")
+    assert numeric.map(math.isfinite).all().all()
+    for name in ["fig_performance", "fig_confidence", "fig_actions", "fig_reward"] + (
+        ["fig_trajectory"] if task == "uav" else []
+    ):
+        assert (out / f"{name}.png").stat().st_size > 5000, name
+    text = (out / "summary.md").read_text()
+    assert "DC-SC" in text and "±" in text
+    assert summary.exists() and task in summary.read_text()
+
+
+@pytest.mark.parametrize("task", ["lunarlander", "uav"])
+def test_theta_changes_during_dcsc_runs(quick_run, task):
+    root, _ = quick_run
+    theta = pd.read_csv(root / "results" / "quick" / task / "theta.csv")
+    assert set(theta["phase"]) == {"collaboration", "validation"}
+    values = theta["theta"].map(eval).tolist()
+    assert values[0] != values[-1]
+
+
+@pytest.mark.parametrize("task", ["lunarlander", "uav"])
+def test_hula_hands_control_to_the_operator_exactly_above_the_threshold(quick_run, task):
+    root, _ = quick_run
+    out = root / "results" / "quick" / task
+    threshold = pd.read_csv(out / "episodes.csv")["hula_threshold"].iloc[0]
+    hula = pd.read_csv(out / "trace.csv").query("method == 'hula'")
+    betas = hula[[c for c in hula.columns if c.startswith("beta")]].to_numpy()
+    machine_in_control = (hula["machine_uncertainty"] <= threshold).to_numpy()
+    assert ((betas == 1).all(1) == machine_in_control).all() and ((betas == 0).all(1) == ~machine_in_control).all()
+
+
+def test_same_seed_gives_identical_episodes_csv(quick_run, tmp_path):
+    root, _ = quick_run
+    pretrained = root / "runs" / "quick" / "pretrain_lunarlander"
+    shared_control(["lunarlander", "--quick", "--out", str(tmp_path), f"pretrain.out_dir={pretrained}"])
+    again = pd.read_csv(tmp_path / "lunarlander" / "episodes.csv")
+    first = pd.read_csv(root / "results" / "quick" / "lunarlander" / "episodes.csv")
+    pd.testing.assert_frame_equal(again, first)
+
+
+def test_first_theta_update_follows_the_sign_of_eq19(quick_run):
+    root, _ = quick_run
+    cfg = load_config(RECIPES / "shared_control_lunarlander.yaml", quick=True)
+    data = load_checkpoint(root / "runs" / "quick" / "pretrain_lunarlander" / "seed0" / "checkpoint.pt",
+                           task="lunarlander")
+    machine, critic = machine_from_checkpoint(data, "lunarlander")
+    env = make_env("lunarlander", cfg, "noisy", [0, 1, 2, 3], operator_seed=0)
+    policy = build_policy(machine, make_arbiter("dcsc", "lunarlander", theta_init=0.5, hula_threshold=None),
+                          "lunarlander", cfg, env.full_action_spec["action"])
+    torch.manual_seed(0)
+    collector = Collector(env, policy, frames_per_batch=40, total_frames=40, auto_register_policy_transforms=False)
+    batch = next(iter(collector)).reshape(-1)
+    collector.shutdown()
+    learner = OnlineLearner(policy, critic, theta_lr=0.1, critic_lr=1e-4, gamma=0.99, tau=1e-3)
+    with torch.no_grad():
+        theta = policy["arbiter"].theta.clone()
+        b = batch["confidence_ratio"]
+        beta = torch.sigmoid(theta * b)
+        q = critic(batch["observation"])
+        grad_j = (b * beta * (1 - beta) * ((batch["machine_probs"] - batch["human_action"]) * q).sum(-1, keepdim=True)).mean()
+    learner(batch)
+    step = policy["arbiter"].theta.detach() - theta
+    assert grad_j.abs() > 0
+    assert torch.sign(step).item() == torch.sign(grad_j).item()
+    torch.testing.assert_close(step, 0.1 * grad_j.reshape(1), rtol=1e-4, atol=1e-7)
