@@ -19,8 +19,8 @@ below 1e-9 in float64 (``tests/test_confidence.py`` checks 1e-6).
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Callable
 from numbers import Real
 
 import torch
@@ -48,6 +48,10 @@ _S_HI = 3.6
 _H = 0.4
 # Elements per block: keeps the [block, nodes] work array inside the CPU cache.
 _BLOCK = 2048
+# Range of ln(a k) / ln(a c) whose kernel tables are cached (others are built per call), and
+# the largest table (entries) built at once.
+_M_CACHED = (-60.0, 40.0)
+_MAX_TABLE = 2_000_000
 
 
 # --------------------------------------------------------------------------------------
@@ -94,9 +98,7 @@ def check_in_range(
     """
     lo_br = "[" if low_inclusive else "("
     hi_br = "]" if high_inclusive else ")"
-    interval = (
-        f"{lo_br}{'-inf' if low is None else low}, {'inf' if high is None else high}{hi_br}"
-    )
+    interval = f"{lo_br}{'-inf' if low is None else low}, {'inf' if high is None else high}{hi_br}"
     if isinstance(value, Tensor):
         v = value.detach()
         ok = ~torch.isnan(v)
@@ -176,8 +178,9 @@ def _as_float_tensor(name: str, value: TensorLike) -> Tensor:
 
 
 def _check_nonnegative_finite(name: str, t: Tensor) -> None:
-    check_finite(name, t)
-    check_in_range(name, t, 0.0, None)
+    if not bool(((t >= 0) & torch.isfinite(t)).all()):  # one reduction on the usual path
+        check_finite(name, t)
+        check_in_range(name, t, 0.0, None)
 
 
 # --------------------------------------------------------------------------------------
@@ -185,37 +188,105 @@ def _check_nonnegative_finite(name: str, t: Tensor) -> None:
 # --------------------------------------------------------------------------------------
 
 
-def _lattice_trapezoid(m: Tensor, log_kernel: Callable[[Tensor], Tensor], h: float) -> Tensor:
+def _log_kernel(kind: str, t: Tensor, delta: float) -> Tensor:
+    """ln of the kernel ``h(u / y)`` at ``t = ln(u / y)``."""
+    zero = torch.zeros_like(t)
+    if kind == "human":  # (1 + u/x)^-delta1
+        return -delta * torch.logaddexp(t, zero)
+    if kind == "accept":  # 1 / (1 + (u/y)^delta2)
+        return -torch.logaddexp(delta * t, zero)
+    return -torch.logaddexp(-delta * t, zero)  # "reject": 1 / (1 + (y/u)^delta2)
+
+
+def _n_nodes(h: float) -> int:
+    return math.ceil((_S_HI - _S_LO) / h) + 2
+
+
+def _build_node_rows(
+    kinds: tuple[str, ...],
+    delta: float,
+    h: float,
+    lo: int,
+    n_rows: int,
+    dtype: torch.dtype,
+    device: torch.device,
+) -> Tensor:
+    """``rows[r, j] = ln kernel(h (lo + r + j)) + h j`` for each kind, stacked along ``r``.
+
+    Row ``r`` holds the kernel part of the node exponents of every element whose first node
+    has lattice index ``i0 = lo + r`` (the integrand is ``exp(s - e^s) * kernel`` with
+    ``s = a0 + h j``, and ``a0`` is added per element).
+    """
+    n_nodes = _n_nodes(h)
+    lattice = h * torch.arange(lo, lo + n_rows + n_nodes - 1, dtype=torch.float64, device=device)
+    hj = h * torch.arange(n_nodes, dtype=torch.float64, device=device)
+    rows = [_log_kernel(kind, lattice, delta).unfold(0, n_nodes, 1) + hj for kind in kinds]
+    return torch.cat(rows).to(dtype).contiguous()
+
+
+_cached_node_rows = functools.lru_cache(maxsize=64)(_build_node_rows)
+
+
+def _lattice_trapezoid(
+    m: Tensor, kinds: tuple[str, ...], delta: float, h: float, which: Tensor | None = None
+) -> Tensor:
     """``∫_R exp(s - e^s) * kernel(s - m) ds`` for every element of the 1-D tensor ``m``.
 
     Trapezoidal rule with spacing ``h`` on the nodes ``s_j = m + h (i0 + j)``, where the
     integer ``i0`` puts the first node in ``[_S_LO - h, _S_LO)``. The kernel is then only
-    needed on the lattice ``t = h * i``, tabulated once for the whole batch, and each
-    element costs one ``exp`` per node. As a function of ``m`` (``i0`` fixed) the sum is
-    the trapezoidal rule of the integral, so autograd's derivative is the rule applied to
-    the derivative of the integrand.
+    needed on the lattice ``t = h * i``: it is tabulated once (cached for the usual range of
+    ``m``), each element selects its row, and costs one ``exp`` per node. As a function of
+    ``m`` (``i0`` fixed) the sum is the trapezoidal rule of the integral, so autograd's
+    derivative is the rule applied to the derivative of the integrand. ``which`` (0/1 per
+    element) picks ``kinds[0]`` or ``kinds[1]`` as the kernel.
     """
-    n = m.numel()
-    if n == 0:
+    if m.numel() == 0:
         return m.new_zeros(0)
-    n_nodes = math.ceil((_S_HI - _S_LO) / h) + 2
-    dtype = m.dtype
+    dtype, device = m.dtype, m.device
+    n_nodes = _n_nodes(h)
     i0 = torch.floor((_S_LO - m.detach()) / h)
     i0_long = i0.to(torch.long)
-    lo = int(i0_long.min())
-    hi = int(i0_long.max()) + n_nodes
-    table = log_kernel(h * torch.arange(lo, hi, dtype=torch.float64, device=m.device)).to(dtype)
-    j = torch.arange(n_nodes, device=m.device)
-    hj = h * j.to(dtype)
-    growth = torch.exp(hj)
-    a0 = m + h * i0  # s of the first node; carries the gradient of m
+    lo, hi = (int(v) for v in torch.stack(torch.aminmax(i0_long)).tolist())
+    std_lo = math.floor((_S_LO - _M_CACHED[1]) / h)
+    std_hi = math.floor((_S_LO - _M_CACHED[0]) / h)
+    std_size = (std_hi - std_lo + 1) * n_nodes * len(kinds)
+    if std_lo <= lo and hi <= std_hi and std_size <= _MAX_TABLE:  # usual case: cached table
+        lo, n_rows = std_lo, std_hi - std_lo + 1
+        rows = _cached_node_rows(kinds, delta, h, lo, n_rows, dtype, device)
+    else:
+        n_rows = hi - lo + 1
+        if n_rows * n_nodes * len(kinds) > _MAX_TABLE and hi > lo:
+            # a batch spanning a huge range of m with a fine lattice: split it by range
+            low_half = i0_long <= (lo + hi) // 2
+            out = torch.zeros_like(m)
+            for part in (low_half, ~low_half):
+                idx = part.nonzero().squeeze(-1)
+                sub_which = None if which is None else which[idx]
+                out = out.index_put((idx,), _lattice_trapezoid(m[idx], kinds, delta, h, sub_which))
+            return out
+        rows = _build_node_rows(kinds, delta, h, lo, n_rows, dtype, device)
+    growth = _growth(h, dtype, device)
+    a0 = m + h * i0  # s of the first node, in [_S_LO - h, _S_LO); carries m's gradient
     offset = i0_long - lo
-    out = []
-    for a0_b, off_b in zip(a0.split(_BLOCK), offset.split(_BLOCK), strict=True):
-        expo = table[off_b.unsqueeze(-1) + j]
-        expo = expo + hj + a0_b.unsqueeze(-1) - torch.exp(a0_b).unsqueeze(-1) * growth
-        out.append(torch.exp(expo).sum(-1))
-    return h * torch.cat(out)
+    if which is not None:
+        offset = offset + n_rows * which
+    block = max(16, _BLOCK * _n_nodes(_H) // n_nodes)  # same work array for finer lattices
+    if a0.numel() <= block:
+        return h * _node_sum(rows, a0, offset, growth)
+    parts = zip(a0.split(block), offset.split(block), strict=True)
+    return h * torch.cat([_node_sum(rows, a0_b, off_b, growth) for a0_b, off_b in parts])
+
+
+def _node_sum(rows: Tensor, a0: Tensor, offset: Tensor, growth: Tensor) -> Tensor:
+    """``Σ_j exp(rows[offset, j] + a0 - e^{a0} e^{h j})``: the integrand at the nodes, summed."""
+    expo = rows.index_select(0, offset).add_(a0.unsqueeze(-1))
+    return expo.addcmul_(torch.exp(a0).unsqueeze(-1), growth, value=-1.0).exp_().sum(-1)
+
+
+@functools.lru_cache(maxsize=64)
+def _growth(h: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``e^{h j}`` for the node index ``j``."""
+    return torch.exp(h * torch.arange(_n_nodes(h), dtype=torch.float64, device=device)).to(dtype)
 
 
 def _compute_dtype(t: Tensor) -> torch.dtype:
@@ -270,7 +341,7 @@ def knowledge_update(
         >>> k = torch.tensor([0.1, 0.1, 0.1, 30.0])
         >>> rt = torch.tensor([0.5, 1.5, 0.0, 0.5])
         >>> knowledge_update(k, rt, K=20.0, t_d=1.0)
-        tensor([0.1607, 0.0607, 0.2000, 20.0000])
+        tensor([ 0.1607,  0.0607,  0.2000, 20.0000])
         >>> knowledge_update(k, rt, K=20.0, t_d=1.0, mode="paper")
         tensor([1.6065e-01, 1.0000e-03, 2.0000e-01, 2.0000e+01])
     """
@@ -348,12 +419,7 @@ def human_confidence(k: TensorLike, p: float, eta: float, delta1: float) -> Tens
     x = (k_t.to(_compute_dtype(k_t)) * a).reshape(-1)
     positive = x > 0
     x_safe = torch.where(positive, x, torch.ones_like(x))
-    delta = float(delta1)
-
-    def log_kernel(t: Tensor) -> Tensor:  # ln (1 + e^t)^-delta1, t = ln(u / x)
-        return -delta * torch.logaddexp(t, torch.zeros_like(t))
-
-    j = _lattice_trapezoid(torch.log(x_safe), log_kernel, _H)
+    j = _lattice_trapezoid(torch.log(x_safe), ("human",), float(delta1), _H)
     # (1-p) e^-x / ((1-p) e^-x + p) = sigmoid(ln((1-p)/p) - x); exactly 1 when p = 0
     logit = math.log1p(-p) - math.log(p) if p > 0 else math.inf
     share = torch.sigmoid(logit - x)
@@ -398,7 +464,7 @@ def machine_confidence(c: TensorLike, lam: float, delta2: float) -> Tensor:
 
     Examples:
         >>> machine_confidence(torch.tensor([0.0, 0.01, 1.0, 100.0]), lam=0.6, delta2=1.05)
-        tensor([1.0000, 0.8143, 0.3868, 0.0179])
+        tensor([1.0000, 0.9783, 0.5363, 0.0159])
     """
     _check_machine_params(lam, delta2)
     c_t = _as_float_tensor("c", c)
@@ -410,18 +476,9 @@ def machine_confidence(c: TensorLike, lam: float, delta2: float) -> Tensor:
     m = torch.log(torch.where(positive, y, torch.ones_like(y)))
     delta = float(delta2)
     h = min(_H, 2.0 * _H / delta)
-    small = (m < 0).nonzero().squeeze(-1)
-    large = (m >= 0).nonzero().squeeze(-1)
-
-    def log_accept(t: Tensor) -> Tensor:  # ln 1 / (1 + e^{delta t}), t = ln(u / y)
-        return -torch.logaddexp(delta * t, torch.zeros_like(t))
-
-    def log_reject(t: Tensor) -> Tensor:  # ln 1 / (1 + e^{-delta t})
-        return -torch.logaddexp(-delta * t, torch.zeros_like(t))
-
-    accept = _lattice_trapezoid(m[small], log_accept, h)
-    reject = _lattice_trapezoid(m[large], log_reject, h)
-    b = torch.zeros_like(m).index_put((small,), 1.0 - accept).index_put((large,), reject)
+    large = m >= 0
+    total = _lattice_trapezoid(m, ("accept", "reject"), delta, h, which=large.to(torch.long))
+    b = torch.where(large, total, 1.0 - total)
     b = torch.where(positive, b, torch.ones_like(b)).clamp(0.0, 1.0)
     return b.reshape(c_t.shape).to(out_dtype)
 
