@@ -88,10 +88,12 @@ def make_env(task: str, cfg: DictConfig, preset: str, scenario_seeds: list[int],
         HumanConfidenceTransform(conf.p, conf.eta, conf.delta1, conf.K, conf.t_d, conf.k0, conf.mode),
     ]
     if task == "lunarlander":
-        env = make_lunar_env(len(scenario_seeds), random_pad=True, transforms=transforms)
+        env = make_lunar_env(len(scenario_seeds), random_pad=True, max_steps=cfg.protocol.max_steps,
+                             transforms=transforms)
         env.set_seed(scenario_seeds[0])  # env i plays the pad drawn from seed scenario_seeds[0] + i
         return env
-    return make_uav_env(len(scenario_seeds), scenario_seeds=scenario_seeds, transforms=transforms)
+    return make_uav_env(len(scenario_seeds), scenario_seeds=scenario_seeds, max_steps=cfg.protocol.max_steps,
+                        transforms=transforms)
 
 
 class OnlineLearner:

@@ -28,6 +28,7 @@ def make_lunar_env(
     num_envs: int,
     *,
     random_pad: bool = True,
+    max_steps: int | None = None,
     transforms: list[Transform] | None = None,
 ) -> TransformedEnv:
     """``num_envs`` TargetLunarLanders stepped by one TorchRL call.
@@ -35,7 +36,8 @@ def make_lunar_env(
     A gymnasium ``SyncVectorEnv`` (same-step autoreset, as TorchRL expects) under
     ``GymWrapper``, with ``success`` / ``crashed`` / ``landed_outside`` read from
     ``info``, then ``transforms`` (e.g. the operator's), ``RewardSum`` and
-    ``StepCounter``. ``render_mode`` stays ``None`` (DESIGN §7).
+    ``StepCounter``. ``render_mode`` stays ``None`` (DESIGN §7). ``max_steps``
+    overrides the 1000-frame timeout.
     """
     if num_envs < 1:
         raise ValueError(f"num_envs must be >= 1, got {num_envs}")
@@ -45,6 +47,8 @@ def make_lunar_env(
         vectorization_mode="sync",
         vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP},
         random_pad=random_pad,
+        disable_env_checker=True,
+        **({} if max_steps is None else {"max_episode_steps": max_steps}),
     )
     base = GymWrapper(vector)
     info_spec = Composite(
@@ -60,10 +64,16 @@ def make_uav_env(
     *,
     scenario_seeds: list[int] | None = None,
     device: str | torch.device = "cpu",
+    max_steps: int | None = None,
     transforms: list[Transform] | None = None,
 ) -> TransformedEnv:
-    """``num_envs`` UAV scenarios as one native batched TorchRL env (+ transforms, RewardSum, StepCounter)."""
+    """``num_envs`` UAV scenarios as one native batched TorchRL env (+ transforms, RewardSum, StepCounter).
+
+    ``max_steps`` overrides the 500-step horizon.
+    """
     from envs.uav import UAVPathPlanningEnv
 
-    base: EnvBase = UAVPathPlanningEnv(num_envs, scenario_seeds=scenario_seeds, device=device)
+    base: EnvBase = UAVPathPlanningEnv(
+        num_envs, scenario_seeds=scenario_seeds, device=device, **({} if max_steps is None else {"horizon": max_steps})
+    )
     return TransformedEnv(base, Compose(*(transforms or []), RewardSum(), StepCounter()))
