@@ -194,9 +194,12 @@ def plot_uav_trajectories(trace: pd.DataFrame, scenario_seed: int, path: Path, t
     fig = plot_uav_episode(torch.as_tensor(paths[main]), scenario.obstacle_params, scenario.goal,
                            title=title, label=METHOD_LABEL["uav"][main])
     ax = fig.axes[0]
+    styles = {"machine": ("black", "--"), "operator": ("saddlebrown", ":"), "hula": ("magenta", "-.")}
     for method, points in paths.items():
         if method != main:
-            ax.plot(points[:, 0], points[:, 1], points[:, 2], lw=1.5, label=METHOD_LABEL["uav"][method])
+            color, style = styles.get(method, ("gray", "-"))
+            ax.plot(points[:, 0], points[:, 1], points[:, 2], color=color, ls=style, lw=1.8,
+                    label=METHOD_LABEL["uav"][method])
     ax.legend(fontsize=8)
     fig.savefig(path, dpi=110)
     plt.close(fig)

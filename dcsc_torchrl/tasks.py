@@ -65,15 +65,20 @@ def make_uav_env(
     scenario_seeds: list[int] | None = None,
     device: str | torch.device = "cpu",
     max_steps: int | None = None,
+    collision_reward: float | None = None,
     transforms: list[Transform] | None = None,
 ) -> TransformedEnv:
     """``num_envs`` UAV scenarios as one native batched TorchRL env (+ transforms, RewardSum, StepCounter).
 
-    ``max_steps`` overrides the 500-step horizon.
+    ``max_steps`` overrides the 500-step horizon, ``collision_reward`` the -10 of DESIGN §4.
     """
     from envs.uav import UAVPathPlanningEnv
 
     base: EnvBase = UAVPathPlanningEnv(
-        num_envs, scenario_seeds=scenario_seeds, device=device, **({} if max_steps is None else {"horizon": max_steps})
+        num_envs,
+        scenario_seeds=scenario_seeds,
+        device=device,
+        **({} if max_steps is None else {"horizon": max_steps}),
+        **({} if collision_reward is None else {"collision_reward": collision_reward}),
     )
     return TransformedEnv(base, Compose(*(transforms or []), RewardSum(), StepCounter()))

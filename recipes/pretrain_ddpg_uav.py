@@ -108,7 +108,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     run.start(resume=args.resume)
     frames_per_batch = cfg.env.num_envs * cfg.collector.rollout_length
     while not run.done:
-        env = make_uav_env(cfg.env.num_envs, device=device)
+        env = make_uav_env(cfg.env.num_envs, device=device, collision_reward=cfg.env.collision_reward)
         env.set_seed(run.segment_seed())
         warmup = max(0, cfg.collector.init_random_frames - run.frames)
         collector = Collector(env, explorer, frames_per_batch=frames_per_batch, total_frames=-1,
