@@ -22,6 +22,7 @@ reproduce: install
 	$(VENV)/bin/dcsc reproduce $(if $(QUICK),--quick,)
 
 bench: install
+	$(PY) -m pip install -e ".[bench]"
 	for b in bench/bench_*.py; do $(PY) $$b || exit 1; done
 
 lint: install
