@@ -104,3 +104,37 @@ def load_module_state(module: nn.Module, state: Mapping[str, torch.Tensor], *, n
     if problems:
         raise ValueError(f"checkpoint's {name} does not fit this network: " + "; ".join(problems[:5]))
     module.load_state_dict(state)
+
+
+def _first_rows(tree: Mapping[str, Any], n: int) -> dict[str, Any]:
+    return {k: _first_rows(v, n) if isinstance(v, Mapping) else v[:n].clone() for k, v in tree.items()}
+
+
+def replay_buffer_state(buffer: Any) -> dict[str, Any]:
+    """A TorchRL ``ReplayBuffer``'s state with only its filled rows.
+
+    ``LazyTensorStorage`` preallocates its whole capacity (1e6 transitions for Table A2's
+    DDPG), which its ``state_dict`` would write to every checkpoint; the rows past
+    ``len(buffer)`` are empty and are left out.
+    """
+    state = buffer.state_dict()
+    storage = state["_storage"]
+    if storage.get("initialized", False):
+        storage["_storage"] = _first_rows(storage["_storage"], storage["_len"])
+    return state
+
+
+def load_replay_buffer_state(buffer: Any, state: Mapping[str, Any]) -> None:
+    """Restores a state written by :func:`replay_buffer_state` into ``buffer``."""
+    from tensordict import TensorDict
+
+    storage = state["_storage"]
+    if not storage.get("initialized", False):
+        buffer.load_state_dict(state)
+        return
+    n = storage["_len"]
+    buffer.empty()
+    buffer.extend(TensorDict(storage["_storage"], batch_size=[n]))
+    full = buffer.state_dict()
+    full.update({key: value for key, value in state.items() if key != "_storage"})
+    buffer.load_state_dict(full)

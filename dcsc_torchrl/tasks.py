@@ -52,7 +52,7 @@ def make_lunar_env(
     )
     base = GymWrapper(vector)
     info_spec = Composite(
-        {key: Categorical(2, shape=(num_envs, 1), dtype=torch.bool) for key in LUNAR_INFO_KEYS},
+        {key: Categorical(2, shape=(num_envs,), dtype=torch.bool) for key in LUNAR_INFO_KEYS},
         shape=[num_envs],
     )
     base.set_info_dict_reader(default_info_dict_reader(list(LUNAR_INFO_KEYS), spec=info_spec))

@@ -1,5 +1,33 @@
-"""Human operators: simulated pilots and a real person at the keyboard (DESIGN §3, §4c)."""
+"""Human operators: simulated pilots and a real person at the keyboard (DESIGN §3, §4c).
 
+- :class:`SimulatedPilot` (TargetLunarLander) and :class:`SimulatedOperator` (UAV):
+  a controller that knows the task, run with the human traits of
+  :class:`OperatorTraits` (decision interval, noise, lag, ex-Gaussian RT, lapses);
+  :data:`PRESETS` names the surrogate pilots (``expert``, ``noisy``, ``laggy``,
+  ``distracted``).
+- :class:`KeyboardPilot`: a person flies TargetLunarLander (``dcsc play lunarlander``).
+- :class:`RandomOperator`: a uniform random action every frame.
+
+Every operator plugs into any pipeline through
+:class:`~dcsc_torchrl.transforms.HumanOperatorTransform`; see ``docs/operators.md``.
+"""
+
+from dcsc_torchrl.humans.evaluate import operator_only_episodes, operator_only_policy
+from dcsc_torchrl.humans.keyboard import KeyboardPilot, NoDisplayError
+from dcsc_torchrl.humans.pilot import SimulatedPilot
 from dcsc_torchrl.humans.random_operator import RandomOperator
+from dcsc_torchrl.humans.traits import PRESETS, OperatorTraits, SimulatedHuman
+from dcsc_torchrl.humans.uav_operator import SimulatedOperator
 
-__all__ = ["RandomOperator"]
+__all__ = [
+    "PRESETS",
+    "KeyboardPilot",
+    "NoDisplayError",
+    "OperatorTraits",
+    "RandomOperator",
+    "SimulatedHuman",
+    "SimulatedOperator",
+    "SimulatedPilot",
+    "operator_only_episodes",
+    "operator_only_policy",
+]

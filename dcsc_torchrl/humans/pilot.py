@@ -1,0 +1,62 @@
+"""A simulated pilot for TargetLunarLander: knows the pad, flies with human traits (DESIGN §4c)."""
+
+from __future__ import annotations
+
+import torch
+from gymnasium.envs.box2d.lunar_lander import FPS
+from tensordict import TensorDictBase
+
+from dcsc_torchrl.humans.traits import PRESETS, OperatorTraits, SimulatedHuman
+from envs.target_lunar_lander import target_heuristic
+
+__all__ = ["SimulatedPilot"]
+
+N_KEYS = 4
+"""TargetLunarLander's keys: 0 no-op, 1 left engine, 2 main engine, 3 right engine."""
+
+
+class SimulatedPilot(SimulatedHuman):
+    """The paper's LunarLander operator (§6.1: "the human has accurate knowledge of the landing target").
+
+    Its controller is :func:`envs.target_lunar_lander.target_heuristic`, which reads
+    the pad's x from ``observation[..., 8]``; the traits (decision interval, noise, lag,
+    ex-Gaussian RT, lapses) are :class:`~dcsc_torchrl.humans.traits.OperatorTraits`,
+    run by :class:`~dcsc_torchrl.humans.traits.SimulatedHuman`. The workload that
+    stretches its RT is the lander's speed plus its tilt,
+    ``hypot(obs[2], obs[3]) + |obs[4]|`` (normalised units and radians).
+
+    Args:
+        traits: the pilot's traits (default: the ``expert`` preset).
+        observation_key: where the 9-value TargetLunarLander observation is read.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> pilot = SimulatedPilot.from_preset("noisy")
+        >>> pilot.reset(0)
+        >>> td = TensorDict({"observation": torch.zeros(3, 9),
+        ...                  "is_init": torch.ones(3, 1, dtype=torch.bool)}, [3])
+        >>> out = pilot(td)
+        >>> out["human_action"].shape, out["human_decided"].all().item()
+        (torch.Size([3, 4]), True)
+    """
+
+    n_choices = N_KEYS
+
+    def __init__(
+        self, traits: OperatorTraits | None = None, *, observation_key: str = "observation"
+    ) -> None:
+        super().__init__(PRESETS["expert"] if traits is None else traits, frame_seconds=1.0 / FPS)
+        self.observation_key = observation_key
+        self.in_keys = (observation_key,)
+
+    def plan(self, tensordict: TensorDictBase) -> torch.Tensor:
+        observations = tensordict.get(self.observation_key).detach().cpu().numpy()
+        keys = [target_heuristic(obs) for obs in observations]
+        return torch.tensor(keys, dtype=torch.int64, device=tensordict.device)
+
+    def workload(self, tensordict: TensorDictBase) -> torch.Tensor:
+        obs = tensordict.get(self.observation_key)
+        return torch.hypot(obs[..., 2], obs[..., 3]) + obs[..., 4].abs()
+
+    def action(self, choice: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.one_hot(choice, N_KEYS)

@@ -1,0 +1,326 @@
+"""Human traits shared by the simulated operators (DESIGN §4c), in one place.
+
+A simulated operator is a controller that knows the task (the pad's x, the obstacles'
+future positions) wrapped in the traits of a person:
+
+- a decision interval: it re-decides every ``decision_interval`` seconds and holds its
+  key between decisions;
+- noise: at a decision it picks a random choice with probability ``eps``;
+- lag: at a decision it repeats its previous choice with probability ``lag``;
+- a reaction time (RT) per decision, drawn from an ex-Gaussian whose mean grows with the
+  workload of the moment (Eq. 6 of the paper reads RT: decisions slower than t_d lower
+  the operator's knowledge); a decision whose RT exceeds ``lapse_threshold`` (t_d) is a
+  lapse: the operator is overloaded and holds its key for the excess ``RT - t_d`` before
+  it decides again.
+
+:class:`OperatorTraits` holds the parameters, :data:`PRESETS` the named surrogate pilots,
+:class:`EnvStreams` the per-environment random streams and :class:`SimulatedHuman` the
+decision loop both :class:`~dcsc_torchrl.humans.SimulatedPilot` and
+:class:`~dcsc_torchrl.humans.SimulatedOperator` run; they add only their controller.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+__all__ = ["PRESETS", "EnvStreams", "OperatorTraits", "SimulatedHuman", "ex_gaussian_rt"]
+
+_Operator = TypeVar("_Operator", bound="SimulatedHuman")
+
+
+@dataclass(frozen=True)
+class OperatorTraits:
+    """The traits of a simulated person (DESIGN §4c); every field is a parameter.
+
+    RT per decision is ex-Gaussian: ``RT = rt_mu (1 + workload_gain * workload)
+    + rt_sigma * N(0, 1) + rt_tau * Exp(1)``, floored at 0, so at zero workload its mean
+    is ``rt_mu + rt_tau`` and its variance ``rt_sigma^2 + rt_tau^2``.
+
+    Attributes:
+        decision_interval: seconds between decisions (rounded to whole frames, at least
+            one); the key is held in between.
+        eps: probability of a random choice at a decision (action noise), in [0, 1].
+        lag: probability of repeating the previous choice at a decision, in [0, 1).
+        rt_mu: mean of the Gaussian part of the RT, seconds, >= 0.
+        rt_sigma: standard deviation of the Gaussian part, seconds, >= 0.
+        rt_tau: mean of the exponential part (the slow tail), seconds, >= 0.
+        workload_gain: how much the workload (a task-specific, dimensionless measure
+            such as speed and tilt) stretches ``rt_mu``, >= 0.
+        lapse_threshold: t_d, seconds, > 0: a decision slower than this is a lapse and
+            delays the next decision by ``RT - t_d`` (defaults to the t_d of
+            :class:`~dcsc_torchrl.transforms.HumanConfidenceTransform`).
+    """
+
+    decision_interval: float = 0.04
+    eps: float = 0.0
+    lag: float = 0.0
+    rt_mu: float = 0.35
+    rt_sigma: float = 0.05
+    rt_tau: float = 0.1
+    workload_gain: float = 0.3
+    lapse_threshold: float = 1.0
+
+    def __post_init__(self) -> None:
+        checks = {
+            "decision_interval": self.decision_interval > 0,
+            "eps": 0 <= self.eps <= 1,
+            "lag": 0 <= self.lag < 1,
+            "rt_mu": self.rt_mu >= 0,
+            "rt_sigma": self.rt_sigma >= 0,
+            "rt_tau": self.rt_tau >= 0,
+            "workload_gain": self.workload_gain >= 0,
+            "lapse_threshold": self.lapse_threshold > 0,
+        }
+        for name, ok in checks.items():
+            value = getattr(self, name)
+            if not (ok and math.isfinite(value)):
+                raise ValueError(f"invalid operator trait {name}={value!r}")
+
+
+PRESETS: dict[str, OperatorTraits] = {
+    "expert": OperatorTraits(),
+    "noisy": OperatorTraits(eps=0.25),
+    "laggy": OperatorTraits(lag=0.8),
+    "distracted": OperatorTraits(rt_mu=0.4, rt_sigma=0.1, rt_tau=0.2, workload_gain=0.5),
+}
+"""Surrogate pilots in the spirit of the shared-autonomy literature (Reddy et al., 2018):
+a competent ``expert``, a ``noisy`` one (random keys), a ``laggy`` one (repeats itself)
+and a ``distracted`` one (a long RT tail: frequent lapses past t_d)."""
+
+
+def ex_gaussian_rt(
+    traits: OperatorTraits, workload: torch.Tensor, uniforms: torch.Tensor
+) -> torch.Tensor:
+    """Ex-Gaussian reaction times whose Gaussian mean grows with the workload.
+
+    ``RT = rt_mu (1 + workload_gain * workload) + rt_sigma * z + rt_tau * e`` with
+    ``z ~ N(0, 1)`` (Box-Muller) and ``e ~ Exp(1)`` (inverse CDF), floored at 0.
+
+    Args:
+        traits: the RT parameters.
+        workload: ``[...]``, >= 0.
+        uniforms: ``[..., 3]`` uniforms in [0, 1) (two for z, one for e).
+
+    Returns:
+        RT in seconds, ``[...]``, float32.
+
+    Examples:
+        >>> rt = ex_gaussian_rt(OperatorTraits(), torch.zeros(4), torch.full((4, 3), 0.5))
+        >>> rt.shape
+        torch.Size([4])
+    """
+    u1, u2, u3 = (1.0 - uniforms).unbind(-1)  # in (0, 1]: finite logs
+    z = torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * math.pi * u2)
+    e = -torch.log(u3)
+    mu = traits.rt_mu * (1.0 + traits.workload_gain * workload.to(z.dtype))
+    return (mu + traits.rt_sigma * z + traits.rt_tau * e).clamp_min(0.0).to(torch.float32)
+
+
+def _signed(value: int) -> int:
+    """A 64-bit constant as the int64 torch stores."""
+    return value - (1 << 64) if value >= 1 << 63 else value
+
+
+_GOLDEN = _signed(0x9E3779B97F4A7C15)
+_MIX1 = _signed(0xBF58476D1CE4E5B9)
+_MIX2 = _signed(0x94D049BB133111EB)
+
+
+def _shift_right(x: torch.Tensor, bits: int) -> torch.Tensor:
+    """Logical right shift of int64 (torch's ``>>`` is arithmetic)."""
+    return (x >> bits) & ((1 << (64 - bits)) - 1)
+
+
+def _mix(x: torch.Tensor) -> torch.Tensor:
+    """SplitMix64's finaliser (Steele, Lea and Flood, 2014), wrapping int64 arithmetic."""
+    x = (x ^ _shift_right(x, 30)) * _MIX1
+    x = (x ^ _shift_right(x, 27)) * _MIX2
+    return x ^ _shift_right(x, 31)
+
+
+class EnvStreams:
+    """One counter-based random stream per environment (SplitMix64 keyed by seed and env).
+
+    Draw ``j`` of call ``c`` for env ``i`` is a hash of ``(seed, i, c, j)``, so env
+    ``i`` gets the same numbers whatever the batch it sits in (its size, its shape, its
+    other envs), on any device, in one vectorised op.
+
+    Args:
+        seed: the operator's seed.
+        draws: uniforms per env per call.
+
+    Examples:
+        >>> streams = EnvStreams(0, draws=2)
+        >>> a = streams.uniform(torch.Size([8]))
+        >>> EnvStreams(0, draws=2).uniform(torch.Size([3]))[2].equal(a[2])
+        True
+    """
+
+    def __init__(self, seed: int, draws: int) -> None:
+        self.draws = draws
+        self.calls = 0
+        self._key = int(_mix(torch.tensor(_signed(int(seed) % (1 << 64)))))
+
+    def uniform(self, batch_shape: torch.Size, device: torch.device | None = None) -> torch.Tensor:
+        """The next ``[*batch_shape, draws]`` uniforms in [0, 1) (float64), one call's worth."""
+        n_envs = math.prod(batch_shape)
+        env = torch.arange(n_envs, dtype=torch.int64, device=device).reshape(*batch_shape, 1)
+        draw = torch.arange(self.draws, dtype=torch.int64, device=device)
+        env_key = _mix(self._key + _GOLDEN * env)
+        counter = self.calls * self.draws + draw
+        bits = _mix(env_key + _GOLDEN * (counter + 1))
+        self.calls += 1
+        return _shift_right(bits, 11).to(torch.float64) * 2.0**-53
+
+
+class SimulatedHuman(ABC):
+    """The decision loop of a simulated operator (a :class:`HumanOperator`).
+
+    Per frame, for every env of the batch (any batch shape): an env whose episode
+    starts (``is_init``) drops its held choice and decides now; otherwise it decides
+    when its decision interval (plus any lapse) has passed. At a decision: with
+    probability ``lag`` it repeats its previous choice, else with probability ``eps`` it
+    picks a random one, else it takes its controller's (:meth:`plan`); it draws an RT
+    (:func:`ex_gaussian_rt`, workload from :meth:`workload`). Between decisions it holds
+    its choice and reports the last decision's RT with ``human_decided`` False.
+
+    Every random number comes from :class:`EnvStreams`, so an env behaves the same in
+    any batch. Subclasses say what a choice is (``n_choices``, :meth:`action`), how the
+    person would choose (:meth:`plan`) and what loads them (:meth:`workload`).
+
+    Args:
+        traits: the person's traits.
+        frame_seconds: the env's seconds per frame (decision intervals and lapses are
+            counted in frames).
+    """
+
+    n_choices: int
+    """Number of choices (keys, or points of an action grid)."""
+    in_keys: tuple[str, ...]
+    """The env keys :meth:`plan` and :meth:`workload` read."""
+
+    _draws = 6  # lag, eps, random choice, RT (3)
+
+    def __init__(self, traits: OperatorTraits, *, frame_seconds: float) -> None:
+        if not isinstance(traits, OperatorTraits):
+            raise TypeError(f"traits must be an OperatorTraits, got {type(traits).__name__}")
+        if not frame_seconds > 0:
+            raise ValueError(f"frame_seconds must be > 0, got {frame_seconds!r}")
+        self.traits = traits
+        self.frame_seconds = float(frame_seconds)
+        self.streams: EnvStreams | None = None  # seeded by reset, or at the first call
+        self._state: TensorDict | None = None
+
+    @classmethod
+    def from_preset(cls: type[_Operator], name: str, **kwargs: Any) -> _Operator:
+        """The operator with the traits of ``PRESETS[name]``.
+
+        Args:
+            name: a key of :data:`PRESETS`.
+            **kwargs: fields of :class:`OperatorTraits` override the preset's (e.g.
+                ``eps=0.3``); the rest go to the constructor.
+
+        Raises:
+            KeyError: unknown preset name (the message lists the presets).
+        """
+        if name not in PRESETS:
+            raise KeyError(f"unknown operator preset {name!r}; presets: {sorted(PRESETS)}")
+        fields = {f.name for f in dataclasses.fields(OperatorTraits)}
+        overrides = {k: v for k, v in kwargs.items() if k in fields}
+        rest = {k: v for k, v in kwargs.items() if k not in fields}
+        return cls(dataclasses.replace(PRESETS[name], **overrides), **rest)
+
+    @property
+    def decision_period(self) -> int:
+        """Frames between two decisions when no lapse intervenes (at least 1)."""
+        return max(1, round(self.traits.decision_interval / self.frame_seconds))
+
+    def reset(self, seed: int | None) -> None:
+        """Re-seeds every env's stream (``None``: a seed from torch's global RNG) and forgets all."""
+        if seed is None:
+            seed = int(torch.randint(2**62, ()))
+        self.streams = EnvStreams(seed, self._draws)
+        self._state = None
+
+    @abstractmethod
+    def plan(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The controller's choice for each env of a flat batch: ``[N]`` int64 in ``[0, n_choices)``."""
+
+    @abstractmethod
+    def workload(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The workload of each env of a flat batch now, ``[N]``, >= 0 (stretches the RT)."""
+
+    @abstractmethod
+    def action(self, choice: torch.Tensor) -> torch.Tensor:
+        """``human_action`` of choices ``[N]``: ``[N, n]`` one-hot or ``[N, d]`` float."""
+
+    def _fresh_state(self, n_envs: int, device: torch.device | None) -> TensorDict:
+        return TensorDict(
+            {
+                "choice": torch.zeros(n_envs, dtype=torch.int64),
+                "rt": torch.zeros(n_envs),
+                "wait": torch.zeros(n_envs, dtype=torch.int64),
+            },
+            [n_envs],
+            device=device,
+        )
+
+    def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Decides (or holds) for every env; see the class docstring.
+
+        Args:
+            tensordict: the env's keys for the whole batch plus ``is_init``.
+
+        Returns:
+            ``human_action``, ``human_rt`` ``[*batch, 1]`` and ``human_decided``
+            ``[*batch, 1]`` for the batch.
+        """
+        batch = tensordict.batch_size
+        missing = [key for key in (*self.in_keys, "is_init") if key not in tensordict.keys()]
+        if missing:
+            raise KeyError(f"{type(self).__name__} reads {missing}, which the env did not write")
+        flat = tensordict.select(*self.in_keys, "is_init").reshape(-1)
+        n_envs, device = flat.batch_size[0], tensordict.device
+        restart = flat.get("is_init").reshape(n_envs)
+        if self.streams is None:
+            self.reset(None)
+        if self._state is None or self._state.batch_size[0] != n_envs:
+            self._state = self._fresh_state(n_envs, device)
+            restart = torch.ones_like(restart)
+        state = self._state
+        u = self.streams.uniform(torch.Size([n_envs]), device)
+
+        wait = torch.where(restart, 0, state["wait"])
+        decide = wait <= 0
+        choice = state["choice"].clone()
+        if decide.any():
+            rows = decide.nonzero().squeeze(-1)
+            deciding, u_rows = flat[rows], u[rows]
+            random_choice = (u_rows[:, 2] * self.n_choices).long().clamp_max(self.n_choices - 1)
+            new = torch.where(u_rows[:, 1] < self.traits.eps, random_choice, self.plan(deciding))
+            lagged = (u_rows[:, 0] < self.traits.lag) & ~restart[rows]
+            choice[rows] = torch.where(lagged, choice[rows], new)
+            rt = ex_gaussian_rt(self.traits, self.workload(deciding), u_rows[:, 3:])
+            state["rt"][rows] = rt
+            excess = (rt - self.traits.lapse_threshold).clamp_min(0.0)
+            lapse = torch.round(excess / self.frame_seconds).long()
+            wait[rows] = self.decision_period + lapse
+        state["choice"] = choice
+        state["wait"] = wait - 1
+
+        return TensorDict(
+            {
+                "human_action": self.action(choice).reshape(*batch, -1),
+                "human_rt": state["rt"].reshape(*batch, 1).clone(),
+                "human_decided": decide.reshape(*batch, 1),
+            },
+            batch,
+            device=device,
+        )

@@ -1,0 +1,162 @@
+"""A simulated UAV operator: foresees the obstacles, picks IIFDS coefficients (DESIGN §4c)."""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+
+from dcsc_torchrl.humans.traits import PRESETS, OperatorTraits, SimulatedHuman
+from envs.iifds import iifds_step
+from envs.uav import (
+    ACTION_HIGH,
+    ARENA_HIGH,
+    ARENA_LOW,
+    DT,
+    GOAL_RADIUS,
+    obstacle_states,
+)
+
+__all__ = ["DEFAULT_GRID", "SimulatedOperator"]
+
+DEFAULT_GRID = tuple(itertools.product((0.5, 1.5, 2.5), (0.5, 1.5, 2.5), (0.0, 1.5, 3.0)))
+"""The (rho0, sigma0, tau) candidates: 3 x 3 x 3 points of the action box [0, 3]^3 (tau
+0, 1.5 and 3 turn the flow round one side of an obstacle, over or under it, and round the
+other side)."""
+
+
+class SimulatedOperator(SimulatedHuman):
+    """The paper's UAV operator (§6.1: "the human can anticipate the trajectories of moving obstacles").
+
+    At a decision it tries every (rho0, sigma0, tau) of a small grid by rolling the
+    IIFDS flow (:func:`envs.iifds.iifds_step`) forward ``horizon`` steps against the
+    obstacles' predicted positions (:func:`envs.uav.obstacle_states` of the env's
+    ``obstacle_params`` at ``time + h * DT``), batched over envs x candidates, and keeps
+    the best score::
+
+        score = progress - clearance_weight * max(0, clearance_margin - clearance)
+                - collision_penalty * failed
+
+    where ``progress`` is how much closer to the goal the rollout comes, ``clearance``
+    the smallest surface distance along it, and ``failed`` a collision or leaving the
+    arena before the goal. The traits (decision interval, noise picking a random grid
+    point, lag, ex-Gaussian RT, lapses) are those of
+    :class:`~dcsc_torchrl.humans.traits.SimulatedHuman`; the workload that stretches
+    its RT is how far the UAV is inside ``near`` of the nearest obstacle surface,
+    ``clamp(near - d_s, 0, near)``.
+
+    Args:
+        traits: the operator's traits (default: the ``expert`` preset).
+        grid: the candidate actions, ``[G, 3]`` in ``[0, 3]`` (default :data:`DEFAULT_GRID`).
+        horizon: rollout steps (of ``DT`` seconds) per candidate, >= 1.
+        collision_penalty: score lost by a rollout that collides or leaves the arena.
+        clearance_margin: surface distance below which clearance costs score.
+        clearance_weight: score per unit of clearance below the margin.
+        near: surface distance inside which the workload grows.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from envs.uav import UAVPathPlanningEnv
+        >>> env = UAVPathPlanningEnv(scenario_seeds=[0, 1])
+        >>> td = env.reset().set("is_init", torch.ones(2, 1, dtype=torch.bool))
+        >>> operator = SimulatedOperator.from_preset("expert")
+        >>> operator.reset(0)
+        >>> operator(td)["human_action"].shape
+        torch.Size([2, 3])
+    """
+
+    def __init__(
+        self,
+        traits: OperatorTraits | None = None,
+        *,
+        grid: Sequence[Sequence[float]] | torch.Tensor | None = None,
+        horizon: int = 15,
+        collision_penalty: float = 100.0,
+        clearance_margin: float = 1.0,
+        clearance_weight: float = 2.0,
+        near: float = 2.0,
+    ) -> None:
+        super().__init__(PRESETS["expert"] if traits is None else traits, frame_seconds=DT)
+        grid = torch.as_tensor(DEFAULT_GRID if grid is None else grid, dtype=torch.float32)
+        if grid.ndim != 2 or grid.shape[-1] != 3 or len(grid) == 0:
+            raise ValueError(f"grid must have shape [G, 3], got {tuple(grid.shape)}")
+        if not ((grid >= 0) & (grid <= ACTION_HIGH)).all():
+            raise ValueError(f"grid actions must lie in [0, {ACTION_HIGH}]")
+        if horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        if not near > 0:
+            raise ValueError(f"near must be > 0, got {near}")
+        self.grid = grid
+        self.n_choices = len(grid)
+        self.horizon = int(horizon)
+        self.collision_penalty = float(collision_penalty)
+        self.clearance_margin = float(clearance_margin)
+        self.clearance_weight = float(clearance_weight)
+        self.near = float(near)
+        self.in_keys = ("position", "goal", "time", "obstacle_params")
+
+    def score(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """Scores of every grid action for every env of a flat batch, ``[N, G]``."""
+        position, goal = tensordict.get("position"), tensordict.get("goal")
+        params, now = tensordict.get("obstacle_params"), tensordict.get("time")
+        n_envs, device = position.shape[0], position.device
+        grid = self.grid.to(device)
+        shape = (n_envs, self.n_choices)
+        steps = torch.arange(self.horizon + 1, device=device, dtype=now.dtype)
+        # obstacles at time + h DT for h = 0..horizon: [N, H+1, K, 3] and [N, H+1, K]
+        centres, velocities, radii = obstacle_states(params.unsqueeze(1), now + DT * steps)
+        rho0, sigma0, tau = (column.expand(shape) for column in grid.T)
+        goal = goal.unsqueeze(1).expand(*shape, 3)
+        arena_low = torch.tensor(ARENA_LOW, device=device)
+        arena_high = torch.tensor(ARENA_HIGH, device=device)
+
+        p = position.unsqueeze(1).expand(*shape, 3)
+        start_distance = (p - goal).norm(dim=-1)
+        closest = start_distance
+        clearance = torch.full(shape, float("inf"), device=device)
+        reached = torch.zeros(shape, dtype=torch.bool, device=device)
+        failed = torch.zeros(shape, dtype=torch.bool, device=device)
+        for h in range(self.horizon):
+            moved = iifds_step(
+                p,
+                goal,
+                centres[:, h].unsqueeze(1),
+                radii[:, h].unsqueeze(1),
+                velocities[:, h].unsqueeze(1),
+                rho0,
+                sigma0,
+                tau,
+                DT,
+            )
+            surface = (moved.unsqueeze(-2) - centres[:, h + 1].unsqueeze(1)).norm(dim=-1)
+            surface = (surface - radii[:, h + 1].unsqueeze(1)).amin(-1)
+            outside = ((moved < arena_low) | (moved > arena_high)).any(-1)
+            flying = ~reached
+            clearance = torch.where(flying, torch.minimum(clearance, surface), clearance)
+            failed |= flying & ((surface <= 0) | outside)
+            distance = (moved - goal).norm(dim=-1)
+            closest = torch.minimum(closest, distance)
+            reached |= distance <= GOAL_RADIUS
+            p = torch.where(reached.unsqueeze(-1), goal, moved)
+        shortfall = (self.clearance_margin - clearance).clamp_min(0.0)
+        return (
+            (start_distance - closest)
+            - self.clearance_weight * shortfall
+            - self.collision_penalty * failed.to(shortfall.dtype)
+        )
+
+    def plan(self, tensordict: TensorDictBase) -> torch.Tensor:
+        return self.score(tensordict).argmax(-1)
+
+    def workload(self, tensordict: TensorDictBase) -> torch.Tensor:
+        centres, _, radii = obstacle_states(
+            tensordict.get("obstacle_params"), tensordict.get("time").squeeze(-1)
+        )
+        offset = tensordict.get("position").unsqueeze(-2) - centres
+        surface = (offset.norm(dim=-1) - radii).amin(-1)
+        return (self.near - surface).clamp(0.0, self.near)
+
+    def action(self, choice: torch.Tensor) -> torch.Tensor:
+        return self.grid.to(choice.device)[choice]

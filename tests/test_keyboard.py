@@ -1,0 +1,270 @@
+"""The keyboard pilot and `dcsc play` (DESIGN §4c), headless: SDL's dummy driver, posted keys, a fake clock."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pygame
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs import GymWrapper, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from dcsc_torchrl.checkpoint import save_checkpoint
+from dcsc_torchrl.humans import KeyboardPilot, NoDisplayError
+from dcsc_torchrl.humans.play import load_machine, main, make_play_env, make_policy, play
+from dcsc_torchrl.networks import lunar_actor, lunar_critic
+from dcsc_torchrl.tasks import LUNAR_ID
+from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
+
+FPS = 50
+
+
+class FakeClock:
+    """``tick`` advances a frame counter; the time source reads frames / FPS (no sleeping)."""
+
+    def __init__(self) -> None:
+        self.frames = 0
+
+    def tick(self, framerate: float) -> int:
+        assert framerate == FPS
+        self.frames += 1
+        return 1000 // FPS
+
+    def now(self) -> float:
+        return self.frames / FPS
+
+
+class RecordingScreen:
+    """Keeps what the pilot shows."""
+
+    def __init__(self) -> None:
+        self.shown: list[tuple[np.ndarray | None, list[str]]] = []
+
+    def show(self, frame: np.ndarray | None, lines) -> None:
+        self.shown.append((frame, list(lines)))
+
+    def close(self) -> None:
+        self.shown.append((None, ["closed"]))
+
+
+@pytest.fixture
+def dummy_display(monkeypatch):
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    pygame.display.init()
+    pygame.event.clear()
+    yield
+    pygame.display.quit()
+
+
+def frame_td(is_init: bool, batch: tuple[int, ...] = ()) -> TensorDict:
+    return TensorDict(
+        {"observation": torch.zeros(*batch, 9), "is_init": torch.full((*batch, 1), is_init)}, batch
+    )
+
+
+def step(pilot: KeyboardPilot, *events: pygame.event.Event) -> tuple[int, float, bool]:
+    """Posts ``events``, runs one frame; returns (action, rt, decided)."""
+    for event in events:
+        pygame.event.post(event)
+    out = pilot(frame_td(False))
+    return int(out["human_action"].argmax()), out["human_rt"].item(), bool(out["human_decided"])
+
+
+def key(kind: int, code: int) -> pygame.event.Event:
+    return pygame.event.Event(kind, key=code)
+
+
+def test_posted_keys_give_their_actions_and_rts_from_the_frame_shown(dummy_display):
+    clock = FakeClock()
+    frame = np.zeros((400, 600, 3), dtype=np.uint8)
+    pilot = KeyboardPilot(frame_source=lambda: frame, clock=clock, time_source=clock.now, t_d=0.99)
+    pilot.reset(0)
+    pilot(frame_td(True))  # frame 1 shown at 0.02 s: the timing starts
+    assert step(pilot)[2] is False
+    assert step(pilot)[2] is False
+    action, rt, decided = step(pilot, key(pygame.KEYDOWN, pygame.K_UP))
+    assert (action, decided) == (2, True) and rt == pytest.approx(3 / FPS)  # frame 4 - frame 1
+    action, rt, decided = step(pilot, key(pygame.KEYDOWN, pygame.K_LEFT))  # the last pressed wins
+    assert (action, decided) == (1, True) and rt == pytest.approx(1 / FPS)
+    action, rt, decided = step(pilot, key(pygame.KEYUP, pygame.K_LEFT))
+    assert (action, decided) == (2, True) and rt == pytest.approx(1 / FPS)
+    held = [step(pilot) for _ in range(3)]
+    assert held == [(2, pytest.approx(1 / FPS), False)] * 3  # between decisions: the last RT
+    action, rt, decided = step(
+        pilot, key(pygame.KEYUP, pygame.K_UP), key(pygame.KEYDOWN, pygame.K_RIGHT)
+    )
+    assert (action, decided) == (3, True) and rt == pytest.approx(4 / FPS)
+
+
+def test_no_change_for_longer_than_t_d_is_a_decision_with_rt_above_t_d(dummy_display):
+    clock = FakeClock()
+    pilot = KeyboardPilot(clock=clock, time_source=clock.now, t_d=0.99)
+    pilot(frame_td(True))
+    results = [step(pilot) for _ in range(120)]
+    decisions = [i for i, (_, _, decided) in enumerate(results) if decided]
+    assert decisions == [49, 99]  # 50 frames (1.0 s > t_d) after each timing start
+    assert results[49][1] == pytest.approx(1.0) and results[99][1] == pytest.approx(1.0)
+    assert all(action == 0 for action, _, _ in results)
+
+
+def test_is_init_restarts_the_timing_but_keeps_the_held_keys(dummy_display):
+    clock = FakeClock()
+    pilot = KeyboardPilot(clock=clock, time_source=clock.now)
+    pilot(frame_td(True))
+    step(pilot, key(pygame.KEYDOWN, pygame.K_UP))
+    for _ in range(10):
+        step(pilot)
+    out = pilot(frame_td(True))
+    assert not out["human_decided"].item() and out["human_action"].argmax().item() == 2
+    action, rt, decided = step(pilot, key(pygame.KEYUP, pygame.K_UP))
+    assert (action, decided) == (0, True) and rt == pytest.approx(1 / FPS)
+
+
+def test_joystick_events_steer_like_the_arrow_keys():
+    clock = FakeClock()
+    queue: list[pygame.event.Event] = []
+
+    def events():
+        pending = list(queue)
+        queue.clear()
+        return pending
+
+    pilot = KeyboardPilot(
+        screen=RecordingScreen(), clock=clock, time_source=clock.now, events=events, joystick=False
+    )
+    pilot(frame_td(True))
+    expected = [
+        (pygame.event.Event(pygame.JOYHATMOTION, value=(0, 1)), 2),
+        (pygame.event.Event(pygame.JOYHATMOTION, value=(-1, 0)), 1),
+        (pygame.event.Event(pygame.JOYHATMOTION, value=(0, 0)), 0),
+        (pygame.event.Event(pygame.JOYAXISMOTION, axis=0, value=0.9), 3),
+        (pygame.event.Event(pygame.JOYAXISMOTION, axis=0, value=0.1), 0),
+        (pygame.event.Event(pygame.JOYBUTTONDOWN, button=0), 2),
+        (pygame.event.Event(pygame.JOYBUTTONUP, button=0), 0),
+    ]
+    for event, action in expected:
+        queue.append(event)
+        out = pilot(frame_td(False))
+        assert out["human_action"].argmax().item() == action and out["human_decided"].item()
+
+
+def test_frames_and_status_lines_are_shown_every_frame_and_quit_is_noticed():
+    clock = FakeClock()
+    screen = RecordingScreen()
+    queue = [pygame.event.Event(pygame.QUIT)]
+    pilot = KeyboardPilot(
+        frame_source=lambda: np.full((4, 6, 3), clock.frames, dtype=np.uint8),
+        screen=screen,
+        clock=clock,
+        time_source=clock.now,
+        events=lambda: [queue.pop()] if queue else [],
+        joystick=False,
+    )
+    pilot.status = ["b_h: 0.10"]
+    pilot(frame_td(True))
+    pilot(frame_td(False))
+    assert [frame[0, 0, 0] for frame, _ in screen.shown] == [1, 2]
+    assert all(lines == ["b_h: 0.10"] for _, lines in screen.shown)
+    assert pilot.quit_requested
+
+
+def test_one_person_flies_one_lander():
+    pilot = KeyboardPilot(screen=RecordingScreen(), clock=FakeClock(), events=list, joystick=False)
+    assert pilot(frame_td(True, (1,)))["human_action"].shape == (1, 4)
+    with pytest.raises(ValueError, match="one env"):
+        pilot(frame_td(True, (2,)))
+
+
+def test_no_display_raises_a_clear_error(monkeypatch):
+    for var in ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER"):
+        monkeypatch.delenv(var, raising=False)
+    with pytest.raises(NoDisplayError, match=r"SimulatedPilot\.from_preset\('expert'\)"):
+        KeyboardPilot()
+
+
+def test_a_display_that_fails_to_open_raises_a_clear_error(monkeypatch):
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+
+    def fail() -> None:
+        raise pygame.error("video driver unavailable")
+
+    monkeypatch.setattr(pygame.display, "init", fail)
+    with pytest.raises(RuntimeError, match="video driver unavailable.*simulated operator"):
+        KeyboardPilot()
+
+
+def test_keyboard_pilot_passes_check_env_specs():
+    clock = FakeClock()
+    pilot = KeyboardPilot(
+        screen=RecordingScreen(), clock=clock, time_source=clock.now, events=list, joystick=False
+    )
+    env = TransformedEnv(GymWrapper(gym.make(LUNAR_ID)), HumanOperatorTransform(pilot, seed=0))
+    check_env_specs(env)
+
+
+# --- dcsc play ------------------------------------------------------------------------
+
+
+def play_session(machine):
+    clock = FakeClock()
+    render_env = gym.make(LUNAR_ID, render_mode="rgb_array")
+    screen = RecordingScreen()
+    pilot = KeyboardPilot(
+        frame_source=render_env.render,
+        screen=screen,
+        clock=clock,
+        time_source=clock.now,
+        events=list,
+        joystick=False,
+    )
+    env = make_play_env(render_env, pilot, HumanConfidenceTransform(), seed=0)
+    return play(env, make_policy(env, machine), pilot, episodes=1), screen
+
+
+def test_play_alone_flies_an_episode_and_shows_every_frame():
+    summaries, screen = play_session(machine=None)
+    assert len(summaries) == 1 and summaries[0]["steps"] > 0
+    assert len(screen.shown) == summaries[0]["steps"] + 1  # the reset frame and one per step
+    frame, lines = screen.shown[-1]
+    assert frame.shape == (400, 600, 3)
+    labels = [line.split(":")[0] for line in lines]
+    assert "b_h (you)" in labels and "beta (machine share)" not in labels
+
+
+def test_play_with_dcsc_loads_the_machine_and_shows_both_confidences(tmp_path):
+    hidden, dropout = [16], 0.01
+    state = {
+        "actor": lunar_actor(hidden, dropout).state_dict(),
+        "qvalue": lunar_critic(hidden, 4).state_dict(),
+    }
+    path = save_checkpoint(
+        tmp_path / "checkpoint.pt",
+        task="lunarlander",
+        payload={
+            "config": {"network": {"hidden": hidden, "actor_dropout": dropout}},
+            "state": state,
+        },
+    )
+    summaries, screen = play_session(machine=load_machine(path))
+    assert len(summaries) == 1
+    labels = [line.split(":")[0] for line in screen.shown[-1][1]]
+    assert {"b_h (you)", "b_m (machine)", "beta (machine share)"} <= set(labels)
+
+
+def test_play_without_a_checkpoint_says_how_to_get_one(tmp_path):
+    with pytest.raises(SystemExit, match="dcsc pretrain lunarlander"):
+        main(["lunarlander", "--checkpoint", str(tmp_path / "missing.pt")])
+
+
+def test_play_without_a_display_points_to_the_simulated_pilot(monkeypatch):
+    for var in ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER"):
+        monkeypatch.delenv(var, raising=False)
+    with pytest.raises(SystemExit, match="SimulatedPilot"):
+        main(["lunarlander", "--assist", "none"])
+
+
+def test_keyboard_pilot_rejects_a_bad_t_d():
+    with pytest.raises(ValueError, match="t_d"):
+        KeyboardPilot(t_d=0.0, screen=RecordingScreen(), events=list, joystick=False)

@@ -1,0 +1,358 @@
+"""The simulated operators (DESIGN §4c): traits, RT model, decision loop, both tasks."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+
+import pytest
+import torch
+from scipy.stats import exponnorm
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from dcsc_torchrl.humans import (
+    PRESETS,
+    OperatorTraits,
+    SimulatedOperator,
+    SimulatedPilot,
+    operator_only_episodes,
+    operator_only_policy,
+)
+from dcsc_torchrl.humans.traits import EnvStreams
+from dcsc_torchrl.tasks import make_lunar_env, make_uav_env
+from dcsc_torchrl.transforms import HumanOperatorTransform
+from envs.uav import N_OBSTACLE_PARAMS, ObstacleParam
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "operators.md"
+
+
+def query(observation: torch.Tensor, is_init: bool | torch.Tensor) -> TensorDict:
+    """What HumanOperatorTransform hands an operator: the env's keys plus ``is_init``."""
+    batch = observation.shape[:-1]
+    init = torch.as_tensor(is_init).expand(*batch, 1).clone()
+    return TensorDict({"observation": observation, "is_init": init}, batch)
+
+
+def lunar_rollout(operator, seed: int, steps: int = 60, n_envs: int = 3) -> TensorDict:
+    env = make_lunar_env(n_envs, transforms=[HumanOperatorTransform(operator, seed=seed)])
+    env.set_seed(0)
+    return env.rollout(steps, operator_only_policy(), break_when_any_done=False)
+
+
+# --- traits -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("decision_interval", 0.0),
+        ("eps", 1.5),
+        ("lag", 1.0),
+        ("rt_tau", -0.1),
+        ("lapse_threshold", 0.0),
+    ],
+)
+def test_traits_reject_out_of_range_values_by_name(field, value):
+    with pytest.raises(ValueError, match=field):
+        OperatorTraits(**{field: value})
+
+
+def test_presets_are_traits_and_from_preset_applies_overrides():
+    assert {"expert", "noisy", "laggy", "distracted"} <= set(PRESETS)
+    assert all(isinstance(traits, OperatorTraits) for traits in PRESETS.values())
+    assert 0.15 <= PRESETS["noisy"].eps <= 0.3 and PRESETS["laggy"].lag == 0.8
+    pilot = SimulatedPilot.from_preset("noisy", eps=0.3)
+    assert pilot.traits == dataclasses.replace(PRESETS["noisy"], eps=0.3)
+    operator = SimulatedOperator.from_preset("laggy", horizon=3)
+    assert operator.traits == PRESETS["laggy"] and operator.horizon == 3
+    with pytest.raises(KeyError, match="expert"):
+        SimulatedPilot.from_preset("sleepy")
+
+
+# --- random streams and determinism -------------------------------------------------
+
+
+def test_env_streams_do_not_depend_on_batch_composition():
+    wide = EnvStreams(7, draws=4)
+    narrow = EnvStreams(7, draws=4)
+    for _ in range(3):
+        a, b = wide.uniform(torch.Size([8])), narrow.uniform(torch.Size([3]))
+        torch.testing.assert_close(a[:3], b)
+    u = EnvStreams(7, draws=4).uniform(torch.Size([4000]))
+    assert u.min() >= 0 and u.max() < 1 and abs(u.mean().item() - 0.5) < 0.01
+    assert not EnvStreams(8, draws=4).uniform(torch.Size([3])).equal(b)
+
+
+@pytest.mark.parametrize("make", [lambda: SimulatedPilot.from_preset("noisy")])
+def test_simulated_pilot_env_i_behaves_the_same_in_any_batch(make):
+    torch.manual_seed(0)
+    frames = [torch.randn(8, 9) * 0.5 for _ in range(12)]
+    wide, narrow, grid, single = make(), make(), make(), make()
+    for op in (wide, narrow, grid, single):
+        op.reset(3)
+    for t, obs in enumerate(frames):
+        a = wide(query(obs, t == 0))
+        b = narrow(query(obs[:3], t == 0))
+        c = grid(query(obs.reshape(2, 4, 9), t == 0))
+        d = single(query(obs[0], t == 0))
+        for key in ("human_action", "human_rt", "human_decided"):
+            torch.testing.assert_close(a[key][:3], b[key])
+            torch.testing.assert_close(a[key], c[key].reshape(a[key].shape))
+            torch.testing.assert_close(a[key][0], d[key])
+
+
+@pytest.mark.parametrize("preset", ["noisy", "distracted"])
+def test_simulated_pilot_is_deterministic_for_a_seed_and_differs_across_seeds(preset):
+    first = lunar_rollout(SimulatedPilot.from_preset(preset), seed=1)
+    again = lunar_rollout(SimulatedPilot.from_preset(preset), seed=1)
+    other = lunar_rollout(SimulatedPilot.from_preset(preset), seed=2)
+    for key in ("human_action", "human_rt", "human_decided"):
+        assert first[key].equal(again[key])
+    assert not first["human_rt"].equal(other["human_rt"])
+    assert not first["human_action"].equal(other["human_action"])
+
+
+def test_simulated_operator_is_deterministic_for_a_seed_and_differs_across_seeds():
+    def run(seed):
+        operator = SimulatedOperator.from_preset("noisy", horizon=4)
+        env = make_uav_env(
+            2, scenario_seeds=[0, 1], transforms=[HumanOperatorTransform(operator, seed=seed)]
+        )
+        return env.rollout(25, operator_only_policy(), break_when_any_done=False)
+
+    first, again, other = run(1), run(1), run(2)
+    for key in ("human_action", "human_rt", "human_decided"):
+        assert first[key].equal(again[key])
+    assert not first["human_rt"].equal(other["human_rt"])
+    assert not first["human_action"].equal(other["human_action"])
+    assert first["human_action"].dtype == torch.float32
+    assert ((first["human_action"] >= 0) & (first["human_action"] <= 3)).all()
+
+
+# --- reaction times -----------------------------------------------------------------
+
+
+def draw_rts(traits: OperatorTraits, observation: torch.Tensor, n: int = 20000) -> torch.Tensor:
+    """n RTs: one decision of n envs at their episode's first frame."""
+    pilot = SimulatedPilot(traits)
+    pilot.reset(0)
+    out = pilot(query(observation.expand(n, 9), True))
+    assert out["human_decided"].all()
+    return out["human_rt"].squeeze(-1).double()
+
+
+@pytest.mark.parametrize("preset", ["expert", "distracted"])
+def test_rt_matches_the_configured_ex_gaussian_at_zero_workload(preset):
+    traits = PRESETS[preset]
+    rt = draw_rts(traits, torch.zeros(9))  # at rest and level: zero workload
+    mean, var = traits.rt_mu + traits.rt_tau, traits.rt_sigma**2 + traits.rt_tau**2
+    assert rt.mean().item() == pytest.approx(mean, abs=4 * (var / len(rt)) ** 0.5)
+    assert rt.var().item() == pytest.approx(var, rel=0.06)
+    law = exponnorm(traits.rt_tau / traits.rt_sigma, loc=traits.rt_mu, scale=traits.rt_sigma)
+    for q in (0.1, 0.5, 0.9):
+        assert torch.quantile(rt, q).item() == pytest.approx(law.ppf(q), abs=0.01)
+
+
+@pytest.mark.parametrize("speed", [0.0, 1.0])
+def test_long_rts_occur_at_the_ex_gaussian_rate_and_grow_with_workload(speed):
+    traits = PRESETS["distracted"]
+    observation = torch.zeros(9)
+    observation[3] = -speed  # falling: workload = speed
+    rt = draw_rts(traits, observation)
+    mu = traits.rt_mu * (1 + traits.workload_gain * speed)
+    law = exponnorm(traits.rt_tau / traits.rt_sigma, loc=mu, scale=traits.rt_sigma)
+    expected = law.sf(traits.lapse_threshold)
+    rate = (rt > traits.lapse_threshold).double().mean().item()
+    assert rate == pytest.approx(expected, abs=4 * (expected * (1 - expected) / len(rt)) ** 0.5)
+    assert expected > (0.05 if speed == 0 else 0.1)
+
+
+def test_expert_rarely_passes_t_d_but_does_under_workload():
+    traits = PRESETS["expert"]
+    busy = torch.zeros(9)
+    busy[2:5] = torch.tensor([1.0, -1.0, 0.4])
+    calm_rate = (draw_rts(traits, torch.zeros(9)) > 1.0).double().mean().item()
+    busy_rate = (draw_rts(traits, busy) > 1.0).double().mean().item()
+    assert calm_rate < 0.01 and busy_rate > calm_rate
+
+
+# --- the decision loop --------------------------------------------------------------
+
+
+def test_decision_period_holds_and_the_key_changes_only_at_decisions():
+    traits = dataclasses.replace(PRESETS["noisy"], decision_interval=0.1, lapse_threshold=100.0)
+    pilot = SimulatedPilot(traits)
+    assert pilot.decision_period == 5
+    rollout = lunar_rollout(pilot, seed=0, steps=40, n_envs=2)
+    first, following = rollout[:, :1], rollout["next"]
+    decided = torch.cat([first["human_decided"], following["human_decided"]], 1).squeeze(-1)
+    keys = torch.cat([first["human_action"], following["human_action"]], 1).argmax(-1)
+    frames = torch.arange(decided.shape[1])
+    assert decided.equal((frames % 5 == 0).expand_as(decided))
+    changed = keys[:, 1:] != keys[:, :-1]
+    assert not (changed & ~decided[:, 1:]).any()
+    assert changed.any()
+
+
+def test_a_lapse_delays_the_next_decision_by_the_rt_past_t_d():
+    traits = dataclasses.replace(PRESETS["distracted"], rt_tau=0.5)
+    pilot = SimulatedPilot(traits)
+    pilot.reset(0)
+    obs = torch.zeros(16, 9)
+    decisions, rts = [], []
+    for t in range(150):
+        out = pilot(query(obs, t == 0))
+        decisions.append(out["human_decided"].squeeze(-1))
+        rts.append(out["human_rt"].squeeze(-1))
+    decided, rt = torch.stack(decisions, 1), torch.stack(rts, 1)
+    lapses = 0
+    for env in range(16):
+        frames = decided[env].nonzero().squeeze(-1)
+        for now, later in zip(frames[:-1].tolist(), frames[1:].tolist(), strict=True):
+            excess = max(rt[env, now].item() - traits.lapse_threshold, 0.0)
+            assert later - now == pilot.decision_period + round(excess / pilot.frame_seconds)
+            lapses += excess > 0
+    assert lapses > 0
+
+
+def test_is_init_restarts_an_env_mid_period():
+    pilot = SimulatedPilot(dataclasses.replace(PRESETS["expert"], decision_interval=0.2))
+    pilot.reset(0)
+    obs = torch.zeros(2, 9)
+    assert pilot(query(obs, True))["human_decided"].all()
+    assert not pilot(query(obs, False))["human_decided"].any()
+    restart = torch.tensor([[True], [False]])
+    assert pilot(query(obs, restart))["human_decided"].squeeze(-1).tolist() == [True, False]
+
+
+def test_noise_and_lag_happen_at_their_configured_rates():
+    obs = torch.zeros(20000, 9)
+    planned = 0  # the heuristic's key at rest, level, above the pad
+    noisy = SimulatedPilot(OperatorTraits(eps=0.3))
+    noisy.reset(0)
+    keys = noisy(query(obs, True))["human_action"].argmax(-1)
+    assert (keys != planned).double().mean().item() == pytest.approx(0.3 * 3 / 4, abs=0.015)
+
+    lag = 0.8  # with eps = 1 every fresh choice is random: repeats happen with q + (1 - q) / 4
+    laggy = SimulatedPilot(OperatorTraits(eps=1.0, lag=lag, decision_interval=0.02))
+    laggy.reset(0)
+    first = laggy(query(obs, True))["human_action"]
+    second = laggy(query(obs, False))["human_action"]
+    repeats = (first == second).all(-1).double().mean().item()
+    assert repeats == pytest.approx(lag + (1 - lag) / 4, abs=0.015)
+
+
+# --- the UAV operator ---------------------------------------------------------------
+
+
+def uav_query(obstacles: list[tuple[tuple[float, float, float], float, float]]) -> TensorDict:
+    """One env at (0, 0, 5) heading for (10, 0, 5) among (centre, radius, x drift) spheres."""
+    params = torch.zeros(1, len(obstacles), N_OBSTACLE_PARAMS)
+    for k, (centre, radius, drift_x) in enumerate(obstacles):
+        params[0, k, :3] = torch.tensor(centre)
+        params[0, k, ObstacleParam.RADIUS] = radius
+        params[0, k, ObstacleParam.DRIFT_X] = drift_x
+    return TensorDict(
+        {
+            "position": torch.tensor([[0.0, 0.0, 5.0]]),
+            "goal": torch.tensor([[10.0, 0.0, 5.0]]),
+            "time": torch.zeros(1, 1),
+            "obstacle_params": params,
+            "is_init": torch.ones(1, 1, dtype=torch.bool),
+        },
+        [1],
+    )
+
+
+def test_simulated_operator_avoids_the_candidates_that_collide():
+    operator = SimulatedOperator()
+    oncoming = uav_query([((3.0, 1.2, 5.0), 0.8, -2.0)])  # a sphere flying at the UAV
+    scores = operator.score(oncoming)[0]
+    assert (scores < -operator.collision_penalty / 2).any()
+    choice = operator.plan(oncoming)
+    assert scores[choice] == scores.max() and scores[choice] > 0
+    operator.reset(0)
+    action = operator(oncoming)["human_action"]
+    assert action.equal(operator.grid[choice])
+
+
+def test_simulated_operator_scores_progress_when_nothing_is_near():
+    operator = SimulatedOperator(horizon=10)
+    scores = operator.score(uav_query([((5.0, 40.0, 5.0), 1.0, 0.0)]))[0]
+    assert (scores > 0.5).all()  # about horizon * DT * V0 = 1 closer, no penalty
+
+
+def test_simulated_operator_workload_grows_near_obstacles():
+    operator = SimulatedOperator()
+    far = uav_query([((5.0, 40.0, 5.0), 1.0, 0.0)])
+    near = uav_query([((1.5, 0.0, 5.0), 1.0, 0.0)])
+    assert operator.workload(far).item() == 0.0
+    assert operator.workload(near).item() == pytest.approx(operator.near - 0.5)
+
+
+def test_simulated_operator_rejects_a_bad_grid():
+    with pytest.raises(ValueError, match="grid"):
+        SimulatedOperator(grid=[[0.0, 1.0, 4.0]])
+
+
+# --- through the transform, in TorchRL ----------------------------------------------
+
+
+def test_simulated_pilot_passes_check_env_specs():
+    transform = HumanOperatorTransform(SimulatedPilot.from_preset("laggy"), seed=0)
+    check_env_specs(make_lunar_env(2, transforms=[transform]))
+
+
+def test_simulated_operator_passes_check_env_specs():
+    operator = SimulatedOperator.from_preset("distracted", horizon=3)
+    env = make_uav_env(
+        2, scenario_seeds=[0, 1], transforms=[HumanOperatorTransform(operator, seed=0)]
+    )
+    check_env_specs(env)
+
+
+def test_an_operator_missing_its_keys_says_which():
+    with pytest.raises(KeyError, match="obstacle_params"):
+        SimulatedOperator()(query(torch.zeros(2, 9), True))
+
+
+def success_rates(presets: list[str], n_envs: int) -> dict[str, float]:
+    rates = {}
+    for preset in presets:
+        transform = HumanOperatorTransform(SimulatedPilot.from_preset(preset), seed=0)
+        env = make_lunar_env(n_envs, random_pad=True, transforms=[transform])
+        env.set_seed(0)
+        rates[preset] = operator_only_episodes(env, 1000)["success"].float().mean().item()
+    return rates
+
+
+def test_expert_lands_far_more_often_than_noisy_and_distracted():
+    rates = success_rates(["expert", "noisy", "distracted"], n_envs=16)
+    assert rates["expert"] >= 0.8
+    assert rates["expert"] - rates["noisy"] >= 0.25
+    assert rates["expert"] - rates["distracted"] >= 0.25
+
+
+@pytest.mark.slow
+def test_operator_only_success_over_50_seeds_orders_the_presets():
+    rates = success_rates(list(PRESETS), n_envs=50)
+    assert rates["expert"] >= 0.85
+    assert max(rates["noisy"], rates["laggy"], rates["distracted"]) <= rates["expert"] - 0.25
+
+
+# --- docs/operators.md ----------------------------------------------------------------
+
+
+def test_the_example_operator_in_the_docs_runs():
+    text = DOCS.read_text()
+    block = re.search(r"<!-- example-operator -->\s*```python\n(.*?)```", text, re.S)
+    assert block is not None, "docs/operators.md lost its example-operator code block"
+    namespace: dict = {}
+    exec(compile(block.group(1), str(DOCS), "exec"), namespace)
+    rollout = namespace["rollout"]
+    assert rollout["human_action"].shape == (2, 50, 4)
+    assert rollout["action"].equal(rollout["human_action"])
+    decided = rollout["human_decided"].squeeze(-1)
+    assert decided[:, ::10].all() and not decided[:, 1:10].any()
