@@ -66,7 +66,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--methods", "--method", nargs="+", choices=METHODS, default=list(METHODS))
     parser.add_argument("--operators", "--operator", nargs="+", default=None, help="operator presets (default: the config's)")
     parser.add_argument("overrides", nargs="*", help="config overrides, hydra style: online.theta_lr=0.1")
-    return parser.parse_args(argv)
+    return parser.parse_intermixed_args(argv)
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
