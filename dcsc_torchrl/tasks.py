@@ -56,7 +56,11 @@ def make_lunar_env(
         shape=[num_envs],
     )
     base.set_info_dict_reader(default_info_dict_reader(list(LUNAR_INFO_KEYS), spec=info_spec))
-    return TransformedEnv(base, Compose(*(transforms or []), RewardSum(), StepCounter()))
+    # GymWrapper already returns a TransformedEnv (TorchRL's VecGymEnvTransform) for a
+    # vector env: extend it rather than nesting a second TransformedEnv around it
+    for transform in [*(transforms or []), RewardSum(), StepCounter()]:
+        base.append_transform(transform)
+    return base
 
 
 def make_uav_env(
