@@ -45,7 +45,7 @@ from dcsc_torchrl.humans import SimulatedOperator, SimulatedPilot
 from dcsc_torchrl.losses import ThetaLoss
 from dcsc_torchrl.machine import MCDropoutPolicy
 from dcsc_torchrl.policy import SharedPolicyModule
-from dcsc_torchrl.tasks import UAV_INFO_KEYS, make_lunar_env, make_uav_env
+from dcsc_torchrl.tasks import make_lunar_env, make_uav_env
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
 
 METHODS = ("machine", "operator", "hula", "dcsc")
@@ -167,25 +167,24 @@ class EpisodeBatch:
 
 
 def _trace_rows(frames: TensorDictBase, task: str) -> list[dict[str, Any]]:
+    """One row per frame: confidences, authority, the three actions (Figs. 3, 5, 6)."""
     rows = []
     for step in range(frames.shape[0]):
         frame = frames[step]
         row = {"step": step + 1, "reward": frame["next", "reward"].item()}
-        for key in TRACE_KEYS:
-            row[key] = frame[key].reshape(-1).tolist() if key == "beta" and task == "uav" else frame[key].item()
+        row.update({key: frame[key].item() for key in TRACE_KEYS if key != "beta"})
         if task == "lunarlander":
+            row["beta"] = frame["beta"].item()
             row["machine_action"] = int(frame["machine_probs"].argmax())
             row["operator_action"] = int(frame["human_action"].argmax())
             row["shared_action"] = int(frame["action"].argmax())
         else:
+            dims = ("rho", "sigma", "tau")
+            row.update({f"beta_{d}": v for d, v in zip(dims, frame["beta"].tolist(), strict=True)})
             for name, key in (("machine", "machine_action"), ("operator", "human_action"), ("shared", "action")):
-                for dim, value in zip(("rho", "sigma", "tau"), frame[key].tolist(), strict=True):
-                    row[f"{name}_{dim}"] = value
-            row.update({f"position_{axis}": v for axis, v in zip("xyz", frame["next", "position"].tolist(), strict=True)})
+                row.update({f"{name}_{d}": v for d, v in zip(dims, frame[key].tolist(), strict=True)})
+            row.update({f"position_{a}": v for a, v in zip("xyz", frame["next", "position"].tolist(), strict=True)})
         rows.append(row)
-    if task == "uav":
-        for row in rows:
-            row.update({f"beta_{dim}": b for dim, b in zip(("rho", "sigma", "tau"), row.pop("beta"), strict=True)})
     return rows
 
 
