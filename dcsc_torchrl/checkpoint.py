@@ -134,7 +134,8 @@ def load_replay_buffer_state(buffer: Any, state: Mapping[str, Any]) -> None:
         return
     n = storage["_len"]
     buffer.empty()
-    buffer.extend(TensorDict(storage["_storage"], batch_size=[n]))
+    # the storage's state dict flattens nested keys as "next.reward"
+    buffer.extend(TensorDict(storage["_storage"], batch_size=[n]).unflatten_keys("."))
     full = buffer.state_dict()
     full.update({key: value for key, value in state.items() if key != "_storage"})
     buffer.load_state_dict(full)

@@ -4,6 +4,7 @@
     dcsc run {lunarlander,uav} [--methods M ...] [--operators P ...] [--quick] [key=value ...]
     dcsc evaluate [--results DIR]
     dcsc reproduce [--quick] [--results DIR]
+    dcsc sweep [--quick] [--out DIR] [--address ADDR] [key=value ...]
     dcsc play lunarlander [--assist {dcsc,none}] [--checkpoint PATH]
 
 Each sub-command hands its remaining arguments to the module that owns the job.
@@ -46,6 +47,12 @@ def _reproduce(args: argparse.Namespace, rest: list[str]) -> None:
     reproduce(args.results, quick=args.quick, overrides=rest)
 
 
+def _sweep(args: argparse.Namespace, rest: list[str]) -> None:
+    from recipes.sweep import main as sweep
+
+    sweep(rest)
+
+
 def _play(args: argparse.Namespace, rest: list[str]) -> None:
     from dcsc_torchrl.humans.play import main as play_main
 
@@ -68,6 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_argument("--quick", action="store_true", help="the same at a tiny scale (about a minute)")
     reproduce.add_argument("--results", type=Path, default=None, help="default results/ (results/quick with --quick)")
     reproduce.set_defaults(run=_reproduce)
+    sweep = commands.add_parser("sweep", help="the protocol's grid of cells as Ray tasks (recipes/sweep.py)")
+    sweep.set_defaults(run=_sweep)
     play = commands.add_parser("play", help="fly TargetLunarLander yourself, alone or with DC-SC")
     play.add_argument("task", choices=["lunarlander"])
     play.set_defaults(run=_play)

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import argparse
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,8 @@ import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
+from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
@@ -27,6 +30,8 @@ from tqdm.auto import tqdm
 from dcsc_torchrl.checkpoint import (
     load_checkpoint,
     load_module_state,
+    load_replay_buffer_state,
+    replay_buffer_state,
     rng_state,
     save_checkpoint,
     set_rng_state,
@@ -61,6 +66,52 @@ def recipe_config(config_path: str | os.PathLike, args: RecipeArgs) -> DictConfi
     if args.out is not None:
         cfg.logger.out_dir = str(args.out)
     return cfg
+
+
+def make_collector(
+    make_env: Callable[[int], EnvBase],
+    num_envs: int,
+    policy: TensorDictModuleBase,
+    *,
+    workers: int,
+    seed: int,
+    frames_per_batch: int,
+    **kwargs: Any,
+) -> BaseCollector:
+    """The collector of one training segment: ``num_envs`` envs seeded with ``seed``, in one
+    process or split over ``workers`` processes.
+
+    ``workers == 1``: TorchRL's ``Collector`` over ``make_env(num_envs)``. ``workers > 1``:
+    TorchRL's ``MultiSyncCollector``, each worker process stepping ``make_env(num_envs //
+    workers)`` and the batches concatenated along the env dim, so a batch has the same
+    ``[num_envs, time]`` shape either way; the policy's weights are synced to the workers
+    before every batch. ``make_env`` is pickled to the (spawned) workers: pass a top-level
+    function or a ``functools.partial`` of one.
+
+    Args:
+        make_env: builds a batch of ``n`` envs from ``n``.
+        num_envs: envs in all, a multiple of ``workers``.
+        policy: the collecting policy.
+        workers: collector processes (``collector.workers`` of the recipes' configs).
+        seed: the envs' seed (workers after the first continue from the seed the previous
+            one returns, as TorchRL's multi-process collectors do).
+        frames_per_batch: frames of one batch, all workers together.
+        **kwargs: passed on to the collector (e.g. ``init_random_frames``).
+    """
+    if workers < 1 or num_envs % workers:
+        raise ValueError(f"collector.workers must be >= 1 and divide env.num_envs={num_envs}, got {workers}")
+    if workers == 1:
+        env = make_env(num_envs)
+        env.set_seed(seed)
+        return Collector(env, policy, frames_per_batch=frames_per_batch, total_frames=-1,
+                         auto_register_policy_transforms=False, **kwargs)
+    collector = MultiSyncCollector(
+        [partial(make_env, num_envs // workers)] * workers, policy, frames_per_batch=frames_per_batch,
+        total_frames=-1, cat_results=0, update_at_each_batch=True, num_threads=torch.get_num_threads(),
+        auto_register_policy_transforms=False, **kwargs,
+    )
+    collector.set_seed(seed)
+    return collector
 
 
 def finished_episodes(batch: TensorDictBase, extra_keys: Sequence[str] = ()) -> list[dict[str, Any]]:
@@ -181,6 +232,8 @@ class TrainingRun:
                 raise ValueError(f"checkpoint {self.checkpoint_path} has no state for {name!r}")
             if isinstance(obj, torch.nn.Module):
                 load_module_state(obj, data["state"][name], name=name)
+            elif isinstance(obj, ReplayBuffer):
+                load_replay_buffer_state(obj, data["state"][name])
             else:
                 obj.load_state_dict(data["state"][name])
         self.episodes, self.frames, self.segment = data["episodes"], data["frames"], data["segment"]
@@ -201,10 +254,10 @@ class TrainingRun:
         return self.done or self.episodes >= (self.segment + 1) * self.checkpoint_every
 
     def record(self, frames: int, episodes: list[dict[str, Any]], metrics: Mapping[str, float]) -> None:
-        """Counts ``frames``, logs one CSV row per finished episode (up to the budget)."""
+        """Counts ``frames``, logs one CSV row per finished episode, up to the segment's quota."""
         self.frames += frames
         for row in episodes:
-            if self.done:
+            if self.segment_done:  # episodes past the segment's quota are not replayed on resume
                 break
             self.episodes += 1
             self.log.append({"episode": self.episodes, "frames": self.frames, **row, **metrics})
@@ -218,9 +271,10 @@ class TrainingRun:
         self.save()
 
     def save(self) -> None:
-        state = {}
-        for name, obj in self.stateful.items():
-            state[name] = obj.state_dict()
+        state = {
+            name: replay_buffer_state(obj) if isinstance(obj, ReplayBuffer) else obj.state_dict()
+            for name, obj in self.stateful.items()
+        }
         save_checkpoint(
             self.checkpoint_path,
             task=self.task,

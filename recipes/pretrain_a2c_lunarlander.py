@@ -16,12 +16,12 @@ Outputs in ``logger.out_dir``: ``train.csv`` (one row per episode), ``checkpoint
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 
 import pandas as pd
 import torch
 from tensordict.nn import TensorDictModule
-from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, ValueOperator
 from torchrl.objectives import A2CLoss, SoftUpdate, ValueEstimators
@@ -33,6 +33,7 @@ from dcsc_torchrl.training import (
     TrainingRun,
     evaluate,
     finished_episodes,
+    make_collector,
     parse_recipe_args,
     recipe_config,
 )
@@ -100,16 +101,16 @@ def main(argv: Sequence[str] | None = None) -> Path:
     run.start(resume=args.resume)
     frames_per_batch = cfg.env.num_envs * cfg.collector.rollout_length
     while not run.done:
-        env = make_lunar_env(cfg.env.num_envs, random_pad=cfg.env.random_pad)
-        env.set_seed(run.segment_seed())
-        collector = Collector(env, actor, frames_per_batch=frames_per_batch, total_frames=-1,
-                              auto_register_policy_transforms=False)
+        collector = make_collector(partial(make_lunar_env, random_pad=cfg.env.random_pad), cfg.env.num_envs, actor,
+                                   workers=cfg.collector.workers, seed=run.segment_seed(),
+                                   frames_per_batch=frames_per_batch)
         for batch in collector:
             metrics = update(batch)
             run.record(batch.numel(), finished_episodes(batch, ["success"]), metrics)
             if run.segment_done:
                 break
         collector.shutdown()
+        torch.set_num_threads(cfg.threads)  # a multi-process collector's shutdown changes it
         run.end_segment()
     curve = run.finish("A2C on TargetLunarLander (pad at the centre)")
 

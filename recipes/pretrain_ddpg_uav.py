@@ -16,12 +16,12 @@ and ``eval.csv`` (machine-only greedy episodes on the 50 validation scenarios).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 
 import pandas as pd
 import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
-from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.modules import AdditiveGaussianModule, ValueOperator
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
@@ -32,6 +32,7 @@ from dcsc_torchrl.training import (
     TrainingRun,
     evaluate,
     finished_episodes,
+    make_collector,
     parse_recipe_args,
     recipe_config,
 )
@@ -108,17 +109,18 @@ def main(argv: Sequence[str] | None = None) -> Path:
     run.start(resume=args.resume)
     frames_per_batch = cfg.env.num_envs * cfg.collector.rollout_length
     while not run.done:
-        env = make_uav_env(cfg.env.num_envs, device=device, collision_reward=cfg.env.collision_reward)
-        env.set_seed(run.segment_seed())
         warmup = max(0, cfg.collector.init_random_frames - run.frames)
-        collector = Collector(env, explorer, frames_per_batch=frames_per_batch, total_frames=-1,
-                              init_random_frames=warmup, auto_register_policy_transforms=False)
+        collector = make_collector(partial(make_uav_env, device=device, collision_reward=cfg.env.collision_reward),
+                                   cfg.env.num_envs, explorer, workers=cfg.collector.workers,
+                                   seed=run.segment_seed(), frames_per_batch=frames_per_batch,
+                                   init_random_frames=warmup)
         for batch in collector:
             metrics = update(batch)
             run.record(batch.numel(), finished_episodes(batch, ["success"]), metrics)
             if run.segment_done:
                 break
         collector.shutdown()
+        torch.set_num_threads(cfg.threads)  # a multi-process collector's shutdown changes it
         run.end_segment()
     curve = run.finish("DDPG on UAV path planning")
 

@@ -44,7 +44,7 @@ def evaluate(results: Path, wall_seconds: float | None = None) -> Path:
         write_task_figures(task_dir, task, operator, seed)
         body = summary.read_text().replace("# ", "## ", 1).replace("\n## ", "\n### ")
         parts.append(body)
-    path = results / "summary.md"
+    path = (results / "summary.md").resolve()
     path.write_text("\n".join(parts))
     return path
 

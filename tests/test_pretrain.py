@@ -96,3 +96,25 @@ def test_sigkill_while_checkpointing_leaves_the_previous_checkpoint_loadable(tmp
     proc.wait()
     data = load_checkpoint(target, task="uav")
     assert data["step"] >= 0 and data["state"]["w"].shape == (4_000_000,)
+
+
+@pytest.mark.parametrize("capacity", [2000, 20])  # partly filled, and wrapped around
+def test_replay_buffer_checkpoint_keeps_only_filled_rows_and_restores_exactly(capacity):
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+    from dcsc_torchrl.checkpoint import load_replay_buffer_state, replay_buffer_state
+
+    buffer = ReplayBuffer(storage=LazyTensorStorage(capacity), batch_size=4)
+    for _ in range(3):
+        buffer.extend(TensorDict({"observation": torch.randn(16, 9),
+                                  "next": {"reward": torch.randn(16, 1)}}, [16]))
+    state = replay_buffer_state(buffer)
+    assert all(v.shape[0] == len(buffer) for v in state["_storage"]["_storage"].values())
+    restored = ReplayBuffer(storage=LazyTensorStorage(capacity), batch_size=4)
+    load_replay_buffer_state(restored, state)
+    assert len(restored) == len(buffer)
+    assert restored.state_dict()["_writer"] == buffer.state_dict()["_writer"]
+    n = len(buffer)
+    assert (restored.storage[:n] == buffer.storage[:n]).all()
+    assert ("next", "reward") in restored.storage[:n].keys(True)

@@ -1,0 +1,344 @@
+"""``dcsc sweep``: the protocol's cells as Ray tasks, on this machine or a Ray cluster.
+
+A *cell* is one (task, operator preset, pretraining seed) of the protocol: every method
+on every scenario seed of the task's config (``dcsc_torchrl.experiment.run_cell``). The
+sweep runs the grid of cells as Ray tasks, one CPU each (docs/scaling.md):
+
+1. one Ray task per pretraining checkpoint the cells need, which pretrains it when it is
+   missing (or finishes one that stopped halfway); a cell starts once its checkpoint is
+   there, so no two cells ever pretrain the same seed;
+2. the cells, each writing its rows to ``DIR/<task>/cells/<operator>-seed<s>/``:
+   ``episodes.csv``, ``trace.csv``, ``theta.csv`` (those with rows), then ``cell.json``
+   (time, attempts, worker), every file atomic;
+3. per task, the cells' rows gathered into ``DIR/<task>/episodes.csv``, ``trace.csv``,
+   ``theta.csv``, ``summary.md`` and the figures: the files ``make reproduce`` writes, rows
+   in the same order.
+
+A cell that raises is re-run by Ray (``ray.retries`` times); one that keeps failing is
+listed with its error in ``DIR/<task>/failed_cells.csv`` and in a "Failed cells" section
+of ``summary.md`` (traceback in its ``error.txt``), and the other cells' rows are kept. A
+cell with a ``cell.json`` is done: running the sweep again runs only the others.
+
+    dcsc sweep [--quick] [--out DIR] [--address ADDR] [key=value ...]
+
+``key=value`` sets the sweep config (``recipes/sweep.yaml``: ``ray.workers=4``,
+``tasks=[uav]``), or, prefixed with a task, that task's protocol config
+(``lunarlander.protocol.max_steps=200``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import logging
+import os
+import re
+import socket
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import ray
+import torch
+from omegaconf import DictConfig
+from tqdm.auto import tqdm
+
+from dcsc_torchrl.checkpoint import load_checkpoint
+from dcsc_torchrl.config import load_config
+from dcsc_torchrl.experiment import METHODS, run_cell
+from dcsc_torchrl.networks import machine_from_checkpoint
+from dcsc_torchrl.report import write_task_figures, write_task_summary
+from recipes.shared_control import PRETRAIN, RECIPES, pretrained_machine, write_csv
+
+CONFIG = Path(__file__).with_suffix(".yaml")
+TABLES = ("episodes", "trace", "theta")
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One cell of the grid; ``trace`` records scenario 0 (main operator, first pretraining seed)."""
+
+    task: str
+    operator: str
+    pretrain_seed: int
+    trace: bool
+
+    @property
+    def name(self) -> str:
+        return f"{self.operator}-seed{self.pretrain_seed}"
+
+    def directory(self, out: Path) -> Path:
+        """The cell's own files: ``out/<task>/cells/<operator>-seed<s>/``."""
+        return out / self.task / "cells" / self.name
+
+    def done(self, out: Path) -> bool:
+        return (self.directory(out) / "cell.json").exists()
+
+
+@dataclass
+class TaskGrid:
+    """One task's protocol config and cells, in the order ``recipes/shared_control.py`` runs them."""
+
+    task: str
+    cfg: DictConfig
+    cells: list[Cell]
+    main_operator: str
+    main_seed: int
+
+
+@dataclass
+class SweepResult:
+    """What a sweep did: the cells it ran, those done before (skipped), those that failed."""
+
+    out: Path
+    ran: list[Cell]
+    skipped: list[Cell]
+    failed: list[dict[str, Any]]
+
+
+def task_grid(task: str, sweep: DictConfig, overrides: Sequence[str] = (), *, quick: bool) -> TaskGrid:
+    """The cells of ``task``: the sweep's presets and seeds, else the protocol config's.
+
+    ``pretrain.out_dir`` is made absolute: the cells may run in other processes or nodes.
+    """
+    cfg = load_config(RECIPES / f"shared_control_{task}.yaml", overrides, quick=quick)
+    cfg.pretrain.out_dir = str(Path(cfg.pretrain.out_dir).resolve())
+    presets = list(sweep.operators or cfg.operator.presets)
+    seeds = [int(seed) for seed in (sweep.pretrain_seeds or cfg.pretrain.seeds)]
+    main_operator = cfg.operator.main if cfg.operator.main in presets else presets[0]
+    cells = [Cell(task, preset, seed, trace=(preset == main_operator and seed == seeds[0]))
+             for seed in seeds for preset in presets]
+    return TaskGrid(task, cfg, cells, main_operator, seeds[0])
+
+
+def _worker_setup() -> None:
+    torch.set_num_threads(1)  # one CPU per Ray task; the rows do not depend on it (run_cell seeds torch)
+    logging.getLogger("torchrl").setLevel(logging.WARNING)
+
+
+@ray.remote(num_cpus=1)
+def ensure_pretrained(task: str, cfg: DictConfig, seed: int, quick: bool) -> str:
+    """Ray task: the path of pretraining seed ``seed``'s checkpoint, pretrained when missing.
+
+    A checkpoint short of its episodes (a pretraining that stopped halfway, e.g. an
+    earlier attempt of this task) is resumed to the end first.
+    """
+    _worker_setup()
+    out = Path(cfg.pretrain.out_dir) / f"seed{seed}"
+    checkpoint = out / "checkpoint.pt"
+    if checkpoint.exists():
+        data = load_checkpoint(checkpoint, task=task)
+        if data["episodes"] < data["config"]["train"]["episodes"]:
+            recipe = importlib.import_module(f"recipes.{PRETRAIN[task]}")
+            recipe.main([*(["--quick"] if quick else []), "--resume", "--out", str(out), f"seed={seed}"])
+    pretrained_machine(task, cfg, seed, quick=quick)
+    return str(checkpoint)
+
+
+def _count_attempt(directory: Path) -> int:
+    path = directory / "attempts"
+    attempts = int(path.read_text()) + 1 if path.exists() else 1
+    path.write_text(str(attempts))
+    return attempts
+
+
+@ray.remote(num_cpus=1)
+def run_sweep_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: str, checkpoint: str) -> dict[str, Any]:
+    """Ray task: one cell of the protocol, its rows written (atomically) to its directory."""
+    _worker_setup()
+    directory = cell.directory(Path(out))
+    directory.mkdir(parents=True, exist_ok=True)
+    attempts = _count_attempt(directory)
+    start = time.perf_counter()
+    machine, critic = machine_from_checkpoint(load_checkpoint(checkpoint, task=cell.task), cell.task)
+    result = run_cell(cell.task, cfg, cell.operator, cell.pretrain_seed, machine, critic, methods=methods,
+                      trace=cell.trace)
+    for name, rows in zip(TABLES, (result.episodes, result.traces, result.theta), strict=True):
+        if rows:
+            write_csv(rows, directory / f"{name}.csv")
+        else:
+            (directory / f"{name}.csv").unlink(missing_ok=True)
+    info = {"task": cell.task, "operator": cell.operator, "pretrain_seed": cell.pretrain_seed,
+            "methods": list(methods), "seconds": time.perf_counter() - start, "attempts": attempts,
+            "hula_threshold": result.hula_threshold, "host": socket.gethostname(), "pid": os.getpid()}
+    tmp = directory / "cell.json.tmp"
+    tmp.write_text(json.dumps(info, indent=2))
+    os.replace(tmp, directory / "cell.json")  # last: the cell counts as done once this exists
+    return info
+
+
+def _failure(out: Path, cell: Cell, err: Exception) -> dict[str, Any]:
+    """The row of ``failed_cells.csv`` for a cell whose retries are spent; the traceback to ``error.txt``."""
+    directory = cell.directory(out)
+    (directory / "error.txt").write_text(re.sub(r"\x1b\[[0-9;]*m", "", str(err)))  # no terminal colours
+    cause = getattr(err, "cause", None) or err  # a RayTaskError carries the task's own exception
+    attempts = directory / "attempts"
+    return {"task": cell.task, "operator": cell.operator, "pretrain_seed": cell.pretrain_seed, "cell": cell.name,
+            "attempts": int(attempts.read_text()) if attempts.exists() else 0,
+            "error": f"{type(cause).__name__}: {cause}".splitlines()[0]}
+
+
+def connect(address: str | None, workers: int) -> bool:
+    """Joins the Ray cluster at ``address``, or starts a local instance of ``workers`` CPUs.
+
+    Does nothing when this process is already connected (a notebook, the tests).
+
+    Returns:
+        Whether this call connected (and the caller should ``ray.shutdown()``).
+    """
+    if ray.is_initialized():
+        return False
+    if address:
+        ray.init(address=address)
+    else:
+        ray.init(num_cpus=workers, include_dashboard=False)
+    return True
+
+
+def run_cells(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], methods: tuple[str, ...], *,
+              quick: bool, retries: int) -> tuple[list[Cell], list[dict[str, Any]]]:
+    """Runs ``cells`` (after the pretrainings they need) as Ray tasks; returns those done and the failures."""
+    cfgs = {grid.task: grid.cfg for grid in grids}
+    retry = {"max_retries": retries, "retry_exceptions": True}
+    checkpoints = {
+        (task, seed): ensure_pretrained.options(**retry).remote(task, cfgs[task], seed, quick)
+        for task, seed in dict.fromkeys((cell.task, cell.pretrain_seed) for cell in cells)
+    }
+    pending: dict[ray.ObjectRef, Cell] = {}
+    for cell in cells:
+        directory = cell.directory(out)
+        directory.mkdir(parents=True, exist_ok=True)
+        for stale in ("attempts", "error.txt"):
+            (directory / stale).unlink(missing_ok=True)
+        ref = run_sweep_cell.options(**retry).remote(cell, cfgs[cell.task], methods, str(out),
+                                                     checkpoints[cell.task, cell.pretrain_seed])
+        pending[ref] = cell
+    ran, failed = [], []
+    with tqdm(total=len(pending), desc="cells", unit="cell", disable=None) as progress:
+        while pending:
+            [ref], _ = ray.wait(list(pending))
+            cell = pending.pop(ref)
+            try:
+                ray.get(ref)
+                ran.append(cell)
+            except Exception as err:  # Ray's retries are spent: report it, keep the others
+                failed.append(_failure(out, cell, err))
+            progress.update()
+    return ran, failed
+
+
+def failed_section(failed: Sequence[dict[str, Any]]) -> str:
+    """The "Failed cells" section appended to a task's ``summary.md``."""
+    lines = ["", "## Failed cells", "",
+             f"{len(failed)} cell(s) failed after every retry (tracebacks in `cells/<cell>/error.txt`):", "",
+             "| cell | attempts | error |", "|---|---|---|"]
+    for row in failed:
+        error = row["error"].replace("|", "\\|")
+        lines.append(f"| {row['cell']} | {row['attempts']} | {error} |")
+    return "\n".join(lines) + "\n"
+
+
+def gather(out: Path, grid: TaskGrid, failed: Sequence[dict[str, Any]]) -> Path:
+    """The done cells' rows into ``out/<task>/``'s CSVs, ``summary.md`` and figures; the failures reported."""
+    task_dir = out / grid.task
+    task_dir.mkdir(parents=True, exist_ok=True)
+    done = [cell for cell in grid.cells if cell.done(out)]
+    for name in TABLES:
+        paths = [path for cell in done if (path := cell.directory(out) / f"{name}.csv").exists()]
+        if paths:
+            # read as text: every value passes through exactly as its cell wrote it
+            frame = pd.concat([pd.read_csv(path, dtype=str, keep_default_na=False) for path in paths],
+                              ignore_index=True)
+            write_csv(frame.to_dict("records"), task_dir / f"{name}.csv")
+        else:
+            (task_dir / f"{name}.csv").unlink(missing_ok=True)
+    summary = task_dir / "summary.md"
+    if done:
+        write_task_summary(task_dir, grid.task, grid.main_operator, grid.main_seed)
+        if (task_dir / "trace.csv").exists():
+            write_task_figures(task_dir, grid.task, grid.main_operator, grid.main_seed)
+    else:
+        summary.write_text(f"# {grid.task}: no cell finished\n")
+    failed_csv = task_dir / "failed_cells.csv"
+    if failed:
+        write_csv(list(failed), failed_csv)
+        summary.write_text(summary.read_text() + failed_section(failed))
+    else:
+        failed_csv.unlink(missing_ok=True)
+    return summary
+
+
+def run_sweep(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...] = METHODS, *, quick: bool = False,
+              retries: int = 2, address: str | None = None, workers: int = 2) -> SweepResult:
+    """Every cell of ``grids`` not done yet, as Ray tasks, then every task's outputs gathered.
+
+    Args:
+        out: the results root (``out/<task>/...``).
+        grids: the tasks' cells (:func:`task_grid`).
+        methods: the methods every cell runs.
+        quick: the tiny setting for pretraining a missing checkpoint.
+        retries: Ray re-runs of a failing cell or pretraining.
+        address: a Ray cluster to join; ``None`` starts a local instance.
+        workers: CPUs of the local instance.
+    """
+    out = out.resolve()
+    cells = [cell for grid in grids for cell in grid.cells]
+    todo = [cell for cell in cells if not cell.done(out)]
+    ran: list[Cell] = []
+    failed: list[dict[str, Any]] = []
+    if todo:
+        started = connect(address, workers)
+        try:
+            ran, failed = run_cells(out, grids, todo, methods, quick=quick, retries=retries)
+        finally:
+            if started:
+                ray.shutdown()
+    for grid in grids:
+        gather(out, grid, [row for row in failed if row["task"] == grid.task])
+    return SweepResult(out, ran, [cell for cell in cells if cell not in todo], failed)
+
+
+def split_overrides(overrides: Sequence[str]) -> tuple[list[str], dict[str, list[str]]]:
+    """``<task>.key=value`` to that task's protocol config, the rest to the sweep config."""
+    sweep: list[str] = []
+    tasks: dict[str, list[str]] = {task: [] for task in PRETRAIN}
+    for item in overrides:
+        head, _, rest = item.partition(".")
+        if head in tasks:
+            tasks[head].append(rest)
+        else:
+            sweep.append(item)
+    return sweep, tasks
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="the tiny setting (tests, QUICK=1)")
+    parser.add_argument("--out", type=Path, default=None, help="results root (default results/, results/quick with --quick)")
+    parser.add_argument("--address", default=None, help="join this Ray cluster ('auto', HOST:PORT) instead of starting one")
+    parser.add_argument("overrides", nargs="*", help="ray.workers=4, tasks=[uav], lunarlander.protocol.max_steps=200")
+    return parser.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> SweepResult:
+    args = parse_args(argv)
+    sweep_overrides, task_overrides = split_overrides(args.overrides)
+    cfg = load_config(CONFIG, sweep_overrides, quick=args.quick)
+    unknown = sorted({*cfg.tasks} - set(PRETRAIN)) + sorted({*cfg.methods} - set(METHODS))
+    if unknown:
+        raise ValueError(f"unknown tasks or methods {unknown}: tasks are {sorted(PRETRAIN)}, methods {list(METHODS)}")
+    grids = [task_grid(task, cfg, task_overrides[task], quick=args.quick) for task in cfg.tasks]
+    out = args.out or Path("results/quick" if args.quick else "results")
+    result = run_sweep(out, grids, tuple(cfg.methods), quick=args.quick, retries=cfg.ray.retries,
+                       address=args.address or cfg.ray.address, workers=cfg.ray.workers)
+    print(f"{len(result.ran)} cells ran, {len(result.skipped)} were done already, {len(result.failed)} failed; "
+          f"results in {result.out}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

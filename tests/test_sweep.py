@@ -1,0 +1,118 @@
+"""``dcsc sweep`` on a local Ray instance: same rows as the cells run in turn, failures, resume."""
+
+from __future__ import annotations
+
+import json
+
+import pandas as pd
+import pytest
+import ray
+import torch
+
+from dcsc_torchrl.cli import _sweep, build_parser
+from dcsc_torchrl.config import load_config
+from dcsc_torchrl.experiment import run_cell
+from recipes.shared_control import RECIPES, pretrained_machine, write_csv
+from recipes.sweep import TABLES, main, split_overrides
+
+PROTOCOL = ["protocol.operator_runs=1", "protocol.collaboration_runs=1", "protocol.validation_scenarios=2",
+            "protocol.group_size=1", "protocol.max_steps=60", "machine.mc_samples=2"]
+METHODS = ["machine", "dcsc"]
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """One local Ray instance (2 CPUs) for the module; every sweep here joins it."""
+    ray.init(num_cpus=2, include_dashboard=False)
+    yield
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def pretrain_dir(tmp_path_factory):
+    """``pretrain.out_dir`` of the quick machines: the first sweep pretrains seeds 0 and 1 there."""
+    return tmp_path_factory.mktemp("pretrain")
+
+
+def sweep_args(out, pretrain_dir, operators: str, seeds: str, *extra: str) -> list[str]:
+    """The command line of a tiny lunarlander sweep (quick config, two methods, a few short episodes)."""
+    return ["--quick", "--out", str(out), "tasks=[lunarlander]", f"operators={operators}",
+            f"pretrain_seeds={seeds}", f"methods=[{','.join(METHODS)}]", "ray.retries=1",
+            f"lunarlander.pretrain.out_dir={pretrain_dir}", *(f"lunarlander.{item}" for item in PROTOCOL), *extra]
+
+
+@pytest.fixture(scope="module")
+def grid_sweep(local_ray, pretrain_dir, tmp_path_factory):
+    """A 2 x 2 sweep (presets expert, noisy x pretraining seeds 0, 1), pretraining included."""
+    out = tmp_path_factory.mktemp("sweep")
+    args = sweep_args(out, pretrain_dir, "[expert,noisy]", "[0,1]")
+    return out, args, main(args)
+
+
+def test_sweep_gives_the_rows_of_the_cells_run_one_after_another(grid_sweep, pretrain_dir, tmp_path):
+    out, _, result = grid_sweep
+    assert len(result.ran) == 4 and not result.failed
+    cfg = load_config(RECIPES / "shared_control_lunarlander.yaml", [*PROTOCOL, f"pretrain.out_dir={pretrain_dir}"],
+                      quick=True)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        tables: dict[str, list[dict]] = {name: [] for name in TABLES}
+        for seed in (0, 1):
+            for preset in ("expert", "noisy"):
+                machine, critic = pretrained_machine("lunarlander", cfg, seed, quick=True)
+                cell = run_cell("lunarlander", cfg, preset, seed, machine, critic, methods=tuple(METHODS),
+                                trace=(preset, seed) == ("expert", 0))
+                tables["episodes"] += cell.episodes
+                tables["trace"] += cell.traces
+                tables["theta"] += cell.theta
+    finally:
+        torch.set_num_threads(threads)
+    for name, rows in tables.items():
+        write_csv(rows, tmp_path / f"{name}.csv")
+        pd.testing.assert_frame_equal(pd.read_csv(out / "lunarlander" / f"{name}.csv"),
+                                      pd.read_csv(tmp_path / f"{name}.csv"))
+    task_dir = out / "lunarlander"
+    assert "DC-SC" in (task_dir / "summary.md").read_text()
+    assert (task_dir / "fig_performance.png").exists() and not (task_dir / "failed_cells.csv").exists()
+    assert sorted(p.name for p in (task_dir / "cells").iterdir()) == ["expert-seed0", "expert-seed1", "noisy-seed0",
+                                                                       "noisy-seed1"]
+
+
+def test_rerunning_a_finished_sweep_runs_no_cell(grid_sweep):
+    out, args, _ = grid_sweep
+    marks = sorted((out / "lunarlander" / "cells").glob("*/cell.json"))
+    before = [(path.stat().st_mtime_ns, path.read_text()) for path in marks]
+    episodes = (out / "lunarlander" / "episodes.csv").read_text()
+    again = main(args)
+    assert again.ran == [] and len(again.skipped) == 4 and not again.failed
+    assert [(path.stat().st_mtime_ns, path.read_text()) for path in marks] == before
+    assert (out / "lunarlander" / "episodes.csv").read_text() == episodes
+
+
+def test_a_failing_cell_is_retried_then_reported_and_the_other_cells_kept(local_ray, pretrain_dir, grid_sweep,
+                                                                          tmp_path):
+    result = main(sweep_args(tmp_path, pretrain_dir, "[expert,nobody]", "[0]"))
+    assert [cell.name for cell in result.ran] == ["expert-seed0"]
+    task_dir = tmp_path / "lunarlander"
+    failed = pd.read_csv(task_dir / "failed_cells.csv")
+    assert failed[["cell", "attempts"]].values.tolist() == [["nobody-seed0", 2]]  # ray.retries=1: tried twice
+    assert "unknown operator preset 'nobody'" in failed["error"].iloc[0]
+    traceback = (task_dir / "cells" / "nobody-seed0" / "error.txt").read_text()
+    assert "in make_operator" in traceback and "\x1b[" not in traceback
+    summary = (task_dir / "summary.md").read_text()
+    assert "## Failed cells" in summary and "nobody-seed0" in summary and "DC-SC" in summary
+    episodes = pd.read_csv(task_dir / "episodes.csv")
+    assert set(episodes["operator"]) == {"expert"} and len(episodes) > 0
+    assert json.loads((task_dir / "cells" / "expert-seed0" / "cell.json").read_text())["attempts"] == 1
+
+
+def test_task_prefixed_overrides_go_to_that_tasks_protocol_config():
+    sweep, tasks = split_overrides(["ray.workers=4", "uav.protocol.max_steps=50", "tasks=[uav]"])
+    assert sweep == ["ray.workers=4", "tasks=[uav]"]
+    assert tasks == {"lunarlander": [], "uav": ["protocol.max_steps=50"]}
+
+
+def test_dcsc_sweep_hands_its_arguments_to_the_recipe():
+    args, rest = build_parser().parse_known_args(["sweep", "--quick", "--out", "DIR", "ray.workers=1"])
+    assert args.run is _sweep and rest == ["--quick", "--out", "DIR", "ray.workers=1"]
