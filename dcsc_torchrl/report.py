@@ -150,6 +150,7 @@ def plot_authority(trace: pd.DataFrame, task: str, path: Path, title: str) -> Pa
             ax.set_yticks([0, 1, 2, 3], ["noop", "left", "main", "right"])
             ax.set_ylabel(who)
             ax.grid(alpha=0.3)
+            ax.legend(loc="upper right", fontsize=8)
     else:
         fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
         for ax, dim in zip(axes, ("rho", "sigma", "tau"), strict=True):

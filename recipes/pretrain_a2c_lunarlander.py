@@ -114,15 +114,16 @@ def main(argv: Sequence[str] | None = None) -> Path:
         run.end_segment()
     curve = run.finish("A2C on TargetLunarLander (pad at the centre)")
 
-    # --- machine-only evaluation: the standard pad and the moved pad --------------------
+    # --- machine-only evaluation: the standard pad and the moved pad (0 episodes: skip) --
     rows = []
-    for pad, random_pad in (("standard", False), ("moved", True)):
+    for pad, random_pad in (("standard", False), ("moved", True)) if cfg.eval.episodes > 0 else ():
         env = make_lunar_env(cfg.eval.episodes, random_pad=random_pad)
         env.set_seed(cfg.seed + 10_000)
         for row in evaluate(env, actor, 1000, ["success", "crashed", "landed_outside"]):
             rows.append({"pad": pad, **row})
         env.close()
-    pd.DataFrame(rows).to_csv(run.out_dir / "eval.csv", index=False)
+    if rows:
+        pd.DataFrame(rows).to_csv(run.out_dir / "eval.csv", index=False)
     return curve
 
 
