@@ -265,6 +265,28 @@ class TrainingRun:
         if episodes:
             self._progress.set_postfix(ret=f"{episodes[-1]['return']:.1f}", frames=self.frames)
 
+    def train(
+        self,
+        segment_collector: Callable[[int], BaseCollector],
+        update: Callable[[TensorDictBase], Mapping[str, float]],
+    ) -> None:
+        """The training loop: segment after segment until the episode budget is spent.
+
+        Each segment gets a fresh collector from ``segment_collector(seed)``; every batch
+        goes through ``update`` (the algorithm's step, returning its loss metrics) and
+        its finished episodes are logged; the segment closes with a checkpoint.
+        """
+        threads = torch.get_num_threads()
+        while not self.done:
+            collector = segment_collector(self.segment_seed())
+            for batch in collector:
+                self.record(batch.numel(), finished_episodes(batch, ["success"]), update(batch))
+                if self.segment_done:
+                    break
+            collector.shutdown()
+            torch.set_num_threads(threads)  # a multi-process collector's shutdown changes it
+            self.end_segment()
+
     def end_segment(self) -> None:
         """Closes the segment with an atomic checkpoint."""
         self.segment += 1

@@ -32,7 +32,6 @@ from dcsc_torchrl.tasks import make_lunar_env
 from dcsc_torchrl.training import (
     TrainingRun,
     evaluate,
-    finished_episodes,
     make_collector,
     parse_recipe_args,
     recipe_config,
@@ -100,18 +99,12 @@ def main(argv: Sequence[str] | None = None) -> Path:
     )
     run.start(resume=args.resume)
     frames_per_batch = cfg.env.num_envs * cfg.collector.rollout_length
-    while not run.done:
-        collector = make_collector(partial(make_lunar_env, random_pad=cfg.env.random_pad), cfg.env.num_envs, actor,
-                                   workers=cfg.collector.workers, seed=run.segment_seed(),
-                                   frames_per_batch=frames_per_batch)
-        for batch in collector:
-            metrics = update(batch)
-            run.record(batch.numel(), finished_episodes(batch, ["success"]), metrics)
-            if run.segment_done:
-                break
-        collector.shutdown()
-        torch.set_num_threads(cfg.threads)  # a multi-process collector's shutdown changes it
-        run.end_segment()
+    run.train(
+        lambda seed: make_collector(partial(make_lunar_env, random_pad=cfg.env.random_pad), cfg.env.num_envs,
+                                    actor, workers=cfg.collector.workers, seed=seed,
+                                    frames_per_batch=frames_per_batch),
+        update,
+    )
     curve = run.finish("A2C on TargetLunarLander (pad at the centre)")
 
     # --- machine-only evaluation: the standard pad and the moved pad (0 episodes: skip) --

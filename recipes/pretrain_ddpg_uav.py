@@ -31,7 +31,6 @@ from dcsc_torchrl.tasks import UAV_INFO_KEYS, make_uav_env
 from dcsc_torchrl.training import (
     TrainingRun,
     evaluate,
-    finished_episodes,
     make_collector,
     parse_recipe_args,
     recipe_config,
@@ -108,20 +107,14 @@ def main(argv: Sequence[str] | None = None) -> Path:
     )
     run.start(resume=args.resume)
     frames_per_batch = cfg.env.num_envs * cfg.collector.rollout_length
-    while not run.done:
-        warmup = max(0, cfg.collector.init_random_frames - run.frames)
-        collector = make_collector(partial(make_uav_env, device=device, collision_reward=cfg.env.collision_reward),
-                                   cfg.env.num_envs, explorer, workers=cfg.collector.workers,
-                                   seed=run.segment_seed(), frames_per_batch=frames_per_batch,
-                                   init_random_frames=warmup)
-        for batch in collector:
-            metrics = update(batch)
-            run.record(batch.numel(), finished_episodes(batch, ["success"]), metrics)
-            if run.segment_done:
-                break
-        collector.shutdown()
-        torch.set_num_threads(cfg.threads)  # a multi-process collector's shutdown changes it
-        run.end_segment()
+    run.train(
+        lambda seed: make_collector(
+            partial(make_uav_env, device=device, collision_reward=cfg.env.collision_reward), cfg.env.num_envs,
+            explorer, workers=cfg.collector.workers, seed=seed, frames_per_batch=frames_per_batch,
+            init_random_frames=max(0, cfg.collector.init_random_frames - run.frames),
+        ),
+        update,
+    )
     curve = run.finish("DDPG on UAV path planning")
 
     # --- machine-only evaluation on the validation scenarios ----------------------------
