@@ -60,12 +60,13 @@ def _play(args: argparse.Namespace, rest: list[str]) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``dcsc`` parser; sub-commands that hand over to a recipe leave ``--help`` to it."""
     parser = argparse.ArgumentParser(prog="dcsc", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
-    pretrain = commands.add_parser("pretrain", help="pretrain a machine policy (A2C / DDPG)")
+    pretrain = commands.add_parser("pretrain", help="pretrain a machine policy (A2C / DDPG)", add_help=False)
     pretrain.add_argument("task", choices=sorted(PRETRAIN_RECIPES))
     pretrain.set_defaults(run=_pretrain)
-    run = commands.add_parser("run", help="the shared-control protocol for one task (recipes/shared_control.py)")
+    run = commands.add_parser("run", help="the shared-control protocol for one task (recipes/shared_control.py)", add_help=False)
     run.add_argument("task", choices=sorted(PRETRAIN_RECIPES))
     run.set_defaults(run=_run)
     evaluate = commands.add_parser("evaluate", help="redraw summaries and figures from results/*.csv")
@@ -75,9 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_argument("--quick", action="store_true", help="the same at a tiny scale (about a minute)")
     reproduce.add_argument("--results", type=Path, default=None, help="default results/ (results/quick with --quick)")
     reproduce.set_defaults(run=_reproduce)
-    sweep = commands.add_parser("sweep", help="the protocol's grid of cells as Ray tasks (recipes/sweep.py)")
+    sweep = commands.add_parser("sweep", help="the protocol's grid of cells as Ray tasks (recipes/sweep.py)", add_help=False)
     sweep.set_defaults(run=_sweep)
-    play = commands.add_parser("play", help="fly TargetLunarLander yourself, alone or with DC-SC")
+    play = commands.add_parser("play", help="fly TargetLunarLander yourself, alone or with DC-SC", add_help=False)
     play.add_argument("task", choices=["lunarlander"])
     play.set_defaults(run=_play)
     return parser
