@@ -30,6 +30,7 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torchrl.collectors import Collector
+from torchrl.data import TensorSpec
 from torchrl.envs import TransformedEnv
 from torchrl.modules import ValueOperator
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
@@ -238,7 +239,9 @@ def run_scenarios(
     return EpisodeBatch(rows, trace_rows, torch.cat(uncertainty).numpy())
 
 
-def build_policy(machine_net: torch.nn.Module, arbiter: Arbiter, task: str, cfg: DictConfig, action_spec) -> SharedPolicyModule:
+def build_policy(
+    machine_net: torch.nn.Module, arbiter: Arbiter, task: str, cfg: DictConfig, action_spec: TensorSpec
+) -> SharedPolicyModule:
     """The shared policy of Eq. 14 over the frozen pretrained machine."""
     machine = MCDropoutPolicy(
         machine_net,
@@ -307,7 +310,13 @@ def run_cell(
     episodes: list[dict[str, Any]] = []
     traces: list[dict[str, Any]] = []
 
-    def play(phase: str, method: str, policy: SharedPolicyModule, update=None, record_trace=False) -> EpisodeBatch:
+    def play(
+        phase: str,
+        method: str,
+        policy: SharedPolicyModule,
+        update: OnlineLearner | None = None,
+        record_trace: bool = False,
+    ) -> EpisodeBatch:
         seeds = scenario_seeds(phase, cfg)
         torch.manual_seed(int(cfg.seed) * 1_000_003 + pretrain_seed * 1009 + METHODS.index(method) * 17
                           + ("operator_alone", "collaboration", "validation").index(phase))
