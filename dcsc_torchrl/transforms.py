@@ -93,6 +93,7 @@ class HumanOperatorTransform(Transform):
         self.seed = seed
         self.action_key = action_key
         self._seeded = False
+        self._action_shape_dtype: tuple[torch.Size, torch.dtype] | None = None
 
     def set_seed(self, seed: int | None) -> None:
         """Re-seeds the operator (its RNG state is its own, not the env's)."""
@@ -107,15 +108,18 @@ class HumanOperatorTransform(Transform):
         query.set("is_init", is_init)
         answer = self.operator(query)
         action_key, rt_key, decided_key = self.out_keys
-        spec = self.parent.full_action_spec[self.action_key]
+        if self._action_shape_dtype is None:  # a spec lookup is slow: once, not every frame
+            spec = self.parent.full_action_spec[self.action_key]
+            self._action_shape_dtype = (spec.shape, spec.dtype)
+        shape, dtype = self._action_shape_dtype
         action = answer.get(action_key)
-        if action.shape != spec.shape:
-            raise ValueError(f"the operator's {action_key} has shape {tuple(action.shape)}, expected {tuple(spec.shape)}")
+        if action.shape != shape:
+            raise ValueError(f"the operator's {action_key} has shape {tuple(action.shape)}, expected {tuple(shape)}")
         rt = answer.get(rt_key)
         check_finite(rt_key, rt)
         if (rt < 0).any():
             raise ValueError(f"the operator's {rt_key} must be >= 0 seconds, got {rt.min().item()}")
-        tensordict.set(action_key, action.to(spec.dtype))
+        tensordict.set(action_key, action.to(dtype))
         tensordict.set(rt_key, rt.to(torch.get_default_dtype()).reshape(*tensordict.batch_size, 1))
         tensordict.set(decided_key, answer.get(decided_key).to(torch.bool).reshape(*tensordict.batch_size, 1))
         return tensordict
@@ -128,6 +132,7 @@ class HumanOperatorTransform(Transform):
         return self._ask(next_tensordict, is_init)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        self._action_shape_dtype = None  # the specs are being (re)built
         action_key, rt_key, decided_key = self.out_keys
         shape = observation_spec.shape
         device = observation_spec.device
