@@ -58,6 +58,18 @@ def write_csv(rows: list[dict], path: Path) -> None:
     os.replace(tmp, path)
 
 
+def cell_grid(presets: Sequence[str], seeds: Sequence[int], main: str) -> tuple[list[tuple[int, str, bool]], str]:
+    """The protocol's cells in order, ``(pretraining seed, preset, traced)``, and the main operator.
+
+    The main operator is ``main`` when it is among ``presets`` (else the first preset); its
+    cell with the first pretraining seed is the one whose scenario 0 is traced (the paper's
+    single-human setting of the tables and figures).
+    """
+    main_operator = main if main in presets else presets[0]
+    cells = [(seed, preset, preset == main_operator and seed == seeds[0]) for seed in seeds for preset in presets]
+    return cells, main_operator
+
+
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("task", choices=sorted(PRETRAIN))
@@ -73,18 +85,15 @@ def main(argv: Sequence[str] | None = None) -> Path:
     args = parse_args(argv)
     cfg = load_config(RECIPES / f"shared_control_{args.task}.yaml", args.overrides, quick=args.quick)
     torch.set_num_threads(cfg.threads)
-    presets = args.operators or list(cfg.operator.presets)
-    main_operator = cfg.operator.main if cfg.operator.main in presets else presets[0]
     seeds = list(cfg.pretrain.seeds)
+    cells, main_operator = cell_grid(args.operators or list(cfg.operator.presets), seeds, cfg.operator.main)
     out = args.out / args.task
     out.mkdir(parents=True, exist_ok=True)
 
     episodes, traces, thetas = [], [], []
-    cells = [(seed, preset) for seed in seeds for preset in presets]
-    for seed, preset in tqdm(cells, desc=f"{args.task} cells", unit="cell", disable=None):
+    for seed, preset, traced in tqdm(cells, desc=f"{args.task} cells", unit="cell", disable=None):
         machine, critic = pretrained_machine(args.task, cfg, seed, quick=args.quick)
-        result = run_cell(args.task, cfg, preset, seed, machine, critic, methods=tuple(args.methods),
-                          trace=(preset == main_operator and seed == seeds[0]))
+        result = run_cell(args.task, cfg, preset, seed, machine, critic, methods=tuple(args.methods), trace=traced)
         episodes += result.episodes
         traces += result.traces
         thetas += result.theta

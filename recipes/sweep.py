@@ -52,7 +52,7 @@ from dcsc_torchrl.config import load_config
 from dcsc_torchrl.experiment import METHODS, run_cell
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.report import write_task_figures, write_task_summary
-from recipes.shared_control import PRETRAIN, RECIPES, pretrained_machine, write_csv
+from recipes.shared_control import PRETRAIN, RECIPES, cell_grid, pretrained_machine, write_csv
 
 CONFIG = Path(__file__).with_suffix(".yaml")
 TABLES = ("episodes", "trace", "theta")
@@ -109,9 +109,8 @@ def task_grid(task: str, sweep: DictConfig, overrides: Sequence[str] = (), *, qu
     cfg.pretrain.out_dir = str(Path(cfg.pretrain.out_dir).resolve())
     presets = list(sweep.operators or cfg.operator.presets)
     seeds = [int(seed) for seed in (sweep.pretrain_seeds or cfg.pretrain.seeds)]
-    main_operator = cfg.operator.main if cfg.operator.main in presets else presets[0]
-    cells = [Cell(task, preset, seed, trace=(preset == main_operator and seed == seeds[0]))
-             for seed in seeds for preset in presets]
+    grid, main_operator = cell_grid(presets, seeds, cfg.operator.main)
+    cells = [Cell(task, preset, seed, trace=traced) for seed, preset, traced in grid]
     return TaskGrid(task, cfg, cells, main_operator, seeds[0])
 
 
