@@ -20,6 +20,7 @@ import time
 import torch
 from tensordict import TensorDictBase
 
+from dcsc_torchrl.experiment import MAX_STEPS
 from dcsc_torchrl.humans import (
     PRESETS,
     SimulatedHuman,
@@ -29,8 +30,6 @@ from dcsc_torchrl.humans import (
 )
 from dcsc_torchrl.tasks import make_lunar_env, make_uav_env
 from dcsc_torchrl.transforms import HumanOperatorTransform
-
-MAX_STEPS = {"lunarlander": 1000, "uav": 500}
 
 
 class TimedOperator:
