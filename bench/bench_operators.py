@@ -20,7 +20,6 @@ import time
 import torch
 from tensordict import TensorDictBase
 
-from dcsc_torchrl.experiment import MAX_STEPS
 from dcsc_torchrl.humans import (
     PRESETS,
     SimulatedHuman,
@@ -28,7 +27,7 @@ from dcsc_torchrl.humans import (
     SimulatedPilot,
     operator_only_episodes,
 )
-from dcsc_torchrl.tasks import make_lunar_env, make_uav_env
+from dcsc_torchrl.tasks import MAX_STEPS, make_lunar_env, make_uav_env
 from dcsc_torchrl.transforms import HumanOperatorTransform
 
 

@@ -36,9 +36,9 @@ from tensordict.nn import TensorDictModule
 from torchrl.modules import OneHotCategorical, ProbabilisticActor
 
 from dcsc_torchrl.config import load_config
-from dcsc_torchrl.experiment import MAX_STEPS, METHODS
+from dcsc_torchrl.experiment import METHODS
 from dcsc_torchrl.networks import lunar_actor, uav_actor
-from dcsc_torchrl.tasks import make_lunar_env, make_uav_env
+from dcsc_torchrl.tasks import MAX_STEPS, make_lunar_env, make_uav_env
 from dcsc_torchrl.training import make_collector
 from recipes.shared_control import PRETRAIN, RECIPES, pretrained_machine
 from recipes.sweep import CONFIG, connect, run_sweep, task_grid

@@ -53,7 +53,6 @@ METHODS = ("machine", "operator", "hula", "dcsc")
 TRACE_KEYS = ("knowledge", "human_confidence", "machine_uncertainty", "machine_confidence",
               "confidence_ratio", "beta")
 ACTION_DIMS = {"lunarlander": 1, "uav": 3}
-MAX_STEPS = {"lunarlander": 1000, "uav": 500}
 
 
 def make_arbiter(method: str, task: str, *, theta_init: float, hula_threshold: float | None) -> Arbiter:

@@ -18,10 +18,14 @@ from torchrl.envs import (
 from torchrl.envs.libs.gym import default_info_dict_reader
 
 import envs  # noqa: F401  (registers the dcsc/* gymnasium ids)
+from envs.uav import HORIZON as UAV_HORIZON
+from envs.uav import UAVPathPlanningEnv
 
 LUNAR_ID = "dcsc/TargetLunarLander-v0"
 LUNAR_INFO_KEYS = ("success", "crashed", "landed_outside")
 UAV_INFO_KEYS = ("success", "collision", "out_of_bounds", "path_length")
+MAX_STEPS = {"lunarlander": gym.spec(LUNAR_ID).max_episode_steps, "uav": UAV_HORIZON}
+"""Each task's own episode limit: gymnasium's TimeLimit (1000 frames), the UAV horizon (500 steps)."""
 
 
 def make_lunar_env(
@@ -76,8 +80,6 @@ def make_uav_env(
 
     ``max_steps`` overrides the 500-step horizon, ``collision_reward`` the -10 of DESIGN §4.
     """
-    from envs.uav import UAVPathPlanningEnv
-
     base: EnvBase = UAVPathPlanningEnv(
         num_envs,
         scenario_seeds=scenario_seeds,
