@@ -306,20 +306,27 @@ def knowledge_update(
     t_d: float,
     mode: str = "decay",
     k_floor: float = 1e-3,
+    cap: str = "min",
 ) -> Tensor:
     """Eq. 6: the human's knowledge level after one decision with response time ``rt``.
 
     Applied once per human *decision* (not every frame)::
 
-        k >= K             ->  K
-        k < K, RT <= t_d   ->  min((1 + exp(-RT)) k, K)
-        k < K, RT >  t_d   ->  mode "decay": k exp(-(RT - t_d))
-                               mode "paper": clamp((1 - exp(RT - t_d)) k, k_floor, K)
+        RT <= t_d   ->  min((1 + exp(-RT)) k, K)
+        RT >  t_d   ->  mode "decay": k exp(-(RT - t_d))
+                        mode "paper": clamp((1 - exp(RT - t_d)) k, k_floor, K)
+
+    Case 1 of Eq. 6 (``k >= K -> K``) is read as a cap (``cap="min"``, the default):
+    ``k_{t+1} = min(K, case 2 or 3)``, so a response slower than ``t_d`` still lowers the
+    knowledge once it has reached ``K`` (the paper's text: past ``t_d`` "normal learning
+    cannot take place, leading to a decrease in the amount of knowledge retained"; its
+    Figs. 3a and 6a show b_h falling late in a task). ``cap="absorbing"`` is the strict
+    reading, in which ``k = K`` never changes again.
 
     Case 3 as printed in the paper, ``(1 - exp(RT - t_d)) k``, is negative for every
     ``RT > t_d``; mode ``"paper"`` keeps the printed factor and clamps it, so a late response
     resets the knowledge to ``k_floor``. Mode ``"decay"`` (the default) forgets smoothly: the
-    later the response, the more knowledge is lost (DESIGN §2, ``docs/math.md``).
+    later the response, the more knowledge is lost (``docs/math.md``).
 
     Args:
         k: current knowledge, ``>= 0`` and finite, any shape.
@@ -329,6 +336,7 @@ def knowledge_update(
         t_d: upper limit of a normal response time in seconds (``> 0``).
         mode: ``"decay"`` or ``"paper"`` (see above).
         k_floor: lower clamp of mode ``"paper"``, in ``(0, K]``; unused by ``"decay"``.
+        cap: ``"min"`` (case 1 caps k at K) or ``"absorbing"`` (k = K stays K).
 
     Returns:
         The new knowledge, in ``[0, K]``, with the broadcast shape of ``k`` and ``rt`` and
@@ -344,10 +352,16 @@ def knowledge_update(
         tensor([ 0.1607,  0.0607,  0.2000, 20.0000])
         >>> knowledge_update(k, rt, K=20.0, t_d=1.0, mode="paper")
         tensor([1.6065e-01, 1.0000e-03, 2.0000e-01, 2.0000e+01])
+        >>> knowledge_update(torch.tensor([20.0, 20.0]), torch.tensor([1.5, 1.5]), K=20.0, t_d=1.0)
+        tensor([12.1306, 12.1306])
+        >>> knowledge_update(torch.tensor([20.0]), torch.tensor([1.5]), K=20.0, t_d=1.0, cap="absorbing")
+        tensor([20.])
     """
     check_in_range("K", K, 0.0, None, low_inclusive=False)
     check_in_range("t_d", t_d, 0.0, None, low_inclusive=False)
     _check_mode(mode)
+    if cap not in ("min", "absorbing"):
+        raise ValueError(f"cap must be 'min' or 'absorbing', got {cap!r}")
     if mode == "paper":
         check_in_range("k_floor", k_floor, 0.0, float(K), low_inclusive=False)
     k_t = _as_float_tensor("k", k)
@@ -366,8 +380,10 @@ def knowledge_update(
         # keeps 0 * (1 - e^big) finite.
         factor = -torch.expm1(torch.clamp(late_by, max=80.0))
         late = torch.clamp(factor * k_t, min=float(k_floor), max=K_f)
-    new_k = torch.where(rt_t <= t_d, grown, late)
-    return torch.where(k_t >= K_f, torch.full_like(new_k, K_f), new_k)
+    new_k = torch.clamp(torch.where(rt_t <= t_d, grown, late), max=K_f)
+    if cap == "absorbing":
+        new_k = torch.where(k_t >= K_f, torch.full_like(new_k, K_f), new_k)
+    return new_k
 
 
 # --------------------------------------------------------------------------------------

@@ -81,8 +81,18 @@ def lunar_actor(hidden: Sequence[int], dropout: float, *, obs_dims: int = 8, n_a
 
 
 def lunar_critic(hidden: Sequence[int], out_dims: int, *, obs_dims: int = 8) -> nn.Sequential:
-    """TargetLunarLander critic: V(s) (``out_dims=1``) or Q(s, .) (``out_dims=4``)."""
+    """TargetLunarLander critic: V(s) (``out_dims=1``) or Q(s, .) (``out_dims=4``) on the first ``obs_dims`` values.
+
+    A2C's V critic sees what the actor sees (8 values); the Q critic behind theta's update
+    (Algorithm 1's ``Q(s, a; omega)``) sees the whole 9-value state, pad included
+    (:data:`LUNAR_QVALUE_DIMS`): otherwise Eq. 19 could never credit the operator for
+    steering towards a pad the critic cannot see.
+    """
     return nn.Sequential(FirstDims(obs_dims), mlp(obs_dims, out_dims, hidden))
+
+
+LUNAR_QVALUE_DIMS = 9
+"""The TargetLunarLander Q critic's input: the 8 standard values and the pad's x."""
 
 
 def uav_actor(hidden: Sequence[int], dropout: float, *, low: float = 0.0, high: float = 3.0) -> nn.Sequential:
@@ -108,7 +118,7 @@ def machine_from_checkpoint(data: dict, task: str) -> tuple[nn.Module, nn.Module
     network = data["config"]["network"]
     if task == "lunarlander":
         actor = lunar_actor(network["hidden"], network["actor_dropout"])
-        critic: nn.Module = lunar_critic(network["hidden"], 4)
+        critic: nn.Module = lunar_critic(network["hidden"], 4, obs_dims=LUNAR_QVALUE_DIMS)
         names = ("actor", "qvalue")
     elif task == "uav":
         actor = uav_actor(network["hidden"], network["actor_dropout"])

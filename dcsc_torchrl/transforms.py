@@ -160,6 +160,8 @@ class HumanConfidenceTransform(Transform):
         k0: knowledge at an episode's start, in [0, K].
         mode: ``"decay"`` (default) or ``"paper"``, see :func:`knowledge_update`.
         k_floor: floor for mode ``"paper"``.
+        cap: ``"min"`` (default: Eq. 6's first case caps k at K, so a late decision still
+            lowers it) or ``"absorbing"`` (the strict reading), see :func:`knowledge_update`.
         persist: carry k across episodes instead of restarting at k0.
         in_keys: ``human_rt``, ``human_decided``.
         out_keys: ``knowledge``, ``human_confidence``.
@@ -176,6 +178,7 @@ class HumanConfidenceTransform(Transform):
         mode: str = "decay",
         *,
         k_floor: float = 1e-3,
+        cap: str = "min",
         persist: bool = False,
         in_keys: tuple[str, str] = ("human_rt", "human_decided"),
         out_keys: tuple[str, str] = ("knowledge", "human_confidence"),
@@ -189,9 +192,11 @@ class HumanConfidenceTransform(Transform):
         check_in_range("k0", k0, 0.0, K, low_inclusive=True, high_inclusive=True)
         if mode not in ("decay", "paper"):
             raise ValueError(f"mode must be 'decay' or 'paper', got {mode!r}")
+        if cap not in ("min", "absorbing"):
+            raise ValueError(f"cap must be 'min' or 'absorbing', got {cap!r}")
         self.p, self.eta, self.delta1 = p, eta, delta1
         self.K, self.t_d, self.k0 = K, t_d, k0
-        self.mode, self.k_floor, self.persist = mode, k_floor, persist
+        self.mode, self.k_floor, self.cap, self.persist = mode, k_floor, cap, persist
 
     def _write(self, tensordict: TensorDictBase, knowledge: torch.Tensor) -> TensorDictBase:
         knowledge_key, confidence_key = self.out_keys
@@ -223,7 +228,8 @@ class HumanConfidenceTransform(Transform):
         rt_key, decided_key = self.in_keys
         decided = next_tensordict.get(decided_key)
         updated = knowledge_update(
-            previous, next_tensordict.get(rt_key), self.K, self.t_d, mode=self.mode, k_floor=self.k_floor
+            previous, next_tensordict.get(rt_key), self.K, self.t_d, mode=self.mode, k_floor=self.k_floor,
+            cap=self.cap,
         )
         return self._write(next_tensordict, torch.where(decided, updated, previous))
 

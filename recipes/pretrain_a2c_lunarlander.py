@@ -27,7 +27,7 @@ from torchrl.modules import OneHotCategorical, ProbabilisticActor, ValueOperator
 from torchrl.objectives import A2CLoss, SoftUpdate, ValueEstimators
 
 from dcsc_torchrl.losses import QCriticLoss
-from dcsc_torchrl.networks import lunar_actor, lunar_critic
+from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic
 from dcsc_torchrl.tasks import make_lunar_env
 from dcsc_torchrl.training import (
     TrainingRun,
@@ -51,7 +51,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     # --- networks: actor (with dropout), V critic for A2C, Q critic for DC-SC ----------
     actor_net = lunar_actor(cfg.network.hidden, cfg.network.actor_dropout)
     value_net = lunar_critic(cfg.network.hidden, 1)
-    qvalue_net = lunar_critic(cfg.network.hidden, 4)
+    qvalue_net = lunar_critic(cfg.network.hidden, 4, obs_dims=LUNAR_QVALUE_DIMS)
     action_spec = make_lunar_env(1).full_action_spec["action"]
     actor = ProbabilisticActor(
         TensorDictModule(actor_net, in_keys=["observation"], out_keys=["logits"]),

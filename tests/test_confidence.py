@@ -305,10 +305,25 @@ def test_gradients_are_finite_at_zero():
 
 
 @pytest.mark.parametrize("mode", ["decay", "paper"])
-def test_knowledge_update_saturates_at_task_difficulty_case1(mode):
+def test_knowledge_update_saturates_at_task_difficulty_case1_absorbing(mode):
     k = torch.tensor([10.0, 12.0])
-    out = knowledge_update(k, torch.tensor([0.3, 5.0]), K=10.0, t_d=1.0, mode=mode)
+    out = knowledge_update(k, torch.tensor([0.3, 5.0]), K=10.0, t_d=1.0, mode=mode, cap="absorbing")
     torch.testing.assert_close(out, torch.tensor([10.0, 10.0]))
+
+
+@pytest.mark.parametrize("mode", ["decay", "paper"])
+def test_knowledge_update_case1_is_a_cap_so_a_late_decision_lowers_k_at_K(mode):
+    k = torch.tensor([10.0, 10.0, 12.0])
+    out = knowledge_update(k, torch.tensor([0.3, 1.5, 0.3]), K=10.0, t_d=1.0, mode=mode)
+    assert out[0] == 10.0 and out[2] == 10.0  # timely decisions stay at the cap
+    assert out[1] < 10.0  # a decision slower than t_d lowers k even at K
+    b_h = human_confidence(out, **_human(PAPER_LUNAR))
+    assert b_h[1] != b_h[0]
+
+
+def test_knowledge_update_rejects_unknown_cap():
+    with pytest.raises(ValueError, match="cap"):
+        knowledge_update(torch.tensor([1.0]), torch.tensor([0.1]), K=10.0, t_d=1.0, cap="sticky")
 
 
 @pytest.mark.parametrize("mode", ["decay", "paper"])

@@ -237,7 +237,7 @@ def test_play_with_dcsc_loads_the_machine_and_shows_both_confidences(tmp_path):
     hidden, dropout = [16], 0.01
     state = {
         "actor": lunar_actor(hidden, dropout).state_dict(),
-        "qvalue": lunar_critic(hidden, 4).state_dict(),
+        "qvalue": lunar_critic(hidden, 4, obs_dims=9).state_dict(),
     }
     path = save_checkpoint(
         tmp_path / "checkpoint.pt",
