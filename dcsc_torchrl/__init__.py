@@ -10,46 +10,37 @@ human-machine collaboration", as composable TorchRL pieces:
 - :mod:`dcsc_torchrl.arbiters` — DC-SC's learnable arbiter (Eqs. 15, 18) and the baselines;
 - :mod:`dcsc_torchrl.policy` — the shared policy (Eq. 14);
 - :mod:`dcsc_torchrl.losses` — the critic's TD loss and the theta update (Eq. 19).
+
+The names below are imported from their modules on first use, so importing the package
+(``import dcsc_torchrl.config``, the ``dcsc`` command's help) does not load torch.
 """
 
-from dcsc_torchrl.arbiters import (
-    Arbiter,
-    ConfidenceArbiter,
-    HULAArbiter,
-    HumanOnlyArbiter,
-    MachineOnlyArbiter,
-    confidence_ratio,
-    fusion_weight,
-)
-from dcsc_torchrl.confidence import (
-    human_confidence,
-    knowledge_update,
-    machine_confidence,
-    mc_dropout_uncertainty,
-)
-from dcsc_torchrl.losses import QCriticLoss, ThetaLoss
-from dcsc_torchrl.machine import MCDropoutPolicy
-from dcsc_torchrl.policy import PolicyBlend, SharedPolicyModule
-from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperator, HumanOperatorTransform
+from __future__ import annotations
 
-__all__ = [
-    "Arbiter",
-    "ConfidenceArbiter",
-    "HULAArbiter",
-    "HumanConfidenceTransform",
-    "HumanOnlyArbiter",
-    "HumanOperator",
-    "HumanOperatorTransform",
-    "MCDropoutPolicy",
-    "MachineOnlyArbiter",
-    "PolicyBlend",
-    "QCriticLoss",
-    "SharedPolicyModule",
-    "ThetaLoss",
-    "confidence_ratio",
-    "fusion_weight",
-    "human_confidence",
-    "knowledge_update",
-    "machine_confidence",
-    "mc_dropout_uncertainty",
-]
+import importlib
+from typing import Any
+
+_HOMES = {
+    "arbiters": ["Arbiter", "ConfidenceArbiter", "HULAArbiter", "HumanOnlyArbiter", "MachineOnlyArbiter",
+                 "confidence_ratio", "fusion_weight"],
+    "confidence": ["human_confidence", "knowledge_update", "machine_confidence", "mc_dropout_uncertainty"],
+    "losses": ["QCriticLoss", "ThetaLoss"],
+    "machine": ["MCDropoutPolicy"],
+    "policy": ["PolicyBlend", "SharedPolicyModule"],
+    "transforms": ["HumanConfidenceTransform", "HumanOperator", "HumanOperatorTransform"],
+}
+_MODULE_OF = {name: module for module, names in _HOMES.items() for name in names}
+
+__all__ = sorted(_MODULE_OF)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _MODULE_OF:
+        raise AttributeError(f"module 'dcsc_torchrl' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"dcsc_torchrl.{_MODULE_OF[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *__all__])

@@ -4,7 +4,16 @@ A checkpoint is a plain dict of tensors, numbers, strings and lists, written wit
 ``torch.save`` to a temporary file in the same directory and renamed over the target
 (``os.replace`` is atomic on POSIX), so a run killed while writing leaves the previous
 checkpoint intact. It is read back with ``torch.load(..., weights_only=True)``: loading a
-checkpoint someone sent you does not run their code (DESIGN §6).
+checkpoint someone sent you does not run their code. A file that cannot be read (empty,
+truncated, not a checkpoint, or holding objects other than plain data) is refused with one
+line naming it (:class:`CheckpointError`).
+
+Every command reads a pretraining seed's machine from one place,
+:func:`checkpoint_path` (``<pretrain.out_dir>/seed<s>/checkpoint.pt``). Checkpoints are
+written readable by the group (the umask's mode, not ``mkstemp``'s private 0600), and the
+temporary files of a writer that was killed are removed at the next save.
+
+This module imports torch only when a checkpoint is written or read.
 """
 
 from __future__ import annotations
@@ -14,17 +23,62 @@ import random
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-import torch
-from torch import nn
+from dcsc_torchrl.config import UsageError
+
+if TYPE_CHECKING:
+    import torch
+    from torch import nn
 
 FORMAT_VERSION = 1
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+class CheckpointError(UsageError):
+    """A checkpoint file that cannot be used: corrupt, truncated, of another task or not ours."""
+
+
+def checkpoint_path(out_dir: str | os.PathLike, seed: int) -> Path:
+    """Where pretraining seed ``seed``'s checkpoint lives: ``<out_dir>/seed<seed>/checkpoint.pt``.
+
+    The one layout every command reads and writes (``dcsc pretrain``, ``dcsc run``,
+    ``dcsc sweep``, ``dcsc play``); ``out_dir`` is a config's ``pretrain.out_dir``,
+    relative to the current folder unless absolute.
+
+    Examples:
+        >>> checkpoint_path("runs/pretrain_lunarlander", 2).as_posix()
+        'runs/pretrain_lunarlander/seed2/checkpoint.pt'
+    """
+    return Path(out_dir) / f"seed{int(seed)}" / CHECKPOINT_NAME
+
+
+def stale_temp_files(path: str | os.PathLike) -> list[Path]:
+    """The temporary files a killed :func:`save_checkpoint` of ``path`` left behind."""
+    path = Path(path)
+    return sorted(path.parent.glob(f".{path.name}.*.tmp")) if path.parent.is_dir() else []
+
+
+def remove_stale_temp_files(path: str | os.PathLike) -> int:
+    """Removes :func:`stale_temp_files` of ``path``; returns how many there were."""
+    stale = stale_temp_files(path)
+    for tmp in stale:
+        tmp.unlink(missing_ok=True)
+    return len(stale)
+
+
+def _shared_mode() -> int:
+    """The mode an ordinary new file gets (0644 under the usual umask 022)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
 
 
 def rng_state() -> dict[str, Any]:
     """The global RNG states of Python, NumPy and torch, as tensors and plain values."""
+    import numpy as np
+    import torch
+
     kind, keys, pos, has_gauss, cached = np.random.get_state()
     return {
         "torch": torch.get_rng_state(),
@@ -36,6 +90,9 @@ def rng_state() -> dict[str, Any]:
 
 def set_rng_state(state: Mapping[str, Any]) -> None:
     """Restores the RNG states written by :func:`rng_state`."""
+    import numpy as np
+    import torch
+
     torch.set_rng_state(state["torch"])
     np_state = state["numpy"]
     np.random.set_state(
@@ -55,8 +112,11 @@ def save_checkpoint(path: str | os.PathLike, *, task: str, payload: Mapping[str,
             recipe of another task refuses to load it.
         payload: state dicts, counters, RNG states and the config as plain data.
     """
+    import torch
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temp_files(path)
     data = {"format_version": FORMAT_VERSION, "task": task, **payload}
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
@@ -64,6 +124,7 @@ def save_checkpoint(path: str | os.PathLike, *, task: str, payload: Mapping[str,
             torch.save(data, f)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, _shared_mode())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -76,16 +137,32 @@ def load_checkpoint(path: str | os.PathLike, *, task: str) -> dict[str, Any]:
 
     Raises:
         FileNotFoundError: no file at ``path``.
-        ValueError: the file is not a dcsc checkpoint, or belongs to another task.
+        CheckpointError: the file is empty, truncated or corrupt, holds objects other than
+            tensors and plain data, is not a dcsc checkpoint, or belongs to another task.
     """
+    import pickle
+
+    import torch
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
-    data = torch.load(path, weights_only=True, map_location="cpu")
+    if path.stat().st_size == 0:
+        raise CheckpointError(f"checkpoint {path} is empty (its writer was stopped?): delete it to pretrain again")
+    try:
+        data = torch.load(path, weights_only=True, map_location="cpu")
+    except pickle.UnpicklingError as err:
+        if "Unsupported global" in str(err) or "GLOBAL" in str(err):
+            raise CheckpointError(f"checkpoint {path} holds objects other than tensors and plain data; "
+                                  "refusing to load it (a dcsc checkpoint never does)") from None
+        raise CheckpointError(f"checkpoint {path} is corrupt or truncated: delete it to pretrain again") from None
+    except (EOFError, RuntimeError, KeyError, ValueError, OSError, IndexError) as err:
+        raise CheckpointError(f"checkpoint {path} is corrupt or truncated ({type(err).__name__}): "
+                              "delete it to pretrain again") from None
     if not isinstance(data, dict) or "task" not in data:
-        raise ValueError(f"{path} is not a dcsc-torchrl checkpoint")
+        raise CheckpointError(f"{path} is not a dcsc-torchrl checkpoint")
     if data["task"] != task:
-        raise ValueError(
+        raise CheckpointError(
             f"checkpoint {path} was written for task {data['task']!r}, but this run is for task {task!r}"
         )
     return data
@@ -102,7 +179,7 @@ def load_module_state(module: nn.Module, state: Mapping[str, torch.Tensor], *, n
         if k in state and state[k].shape != v.shape
     ]
     if problems:
-        raise ValueError(f"checkpoint's {name} does not fit this network: " + "; ".join(problems[:5]))
+        raise CheckpointError(f"checkpoint's {name} does not fit this network: " + "; ".join(problems[:5]))
     module.load_state_dict(state)
 
 

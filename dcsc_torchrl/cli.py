@@ -1,94 +1,316 @@
-"""The ``dcsc`` command: one entry point for every job of the project.
+"""The ``dcsc`` command: one entry point for every job of the project (docs/cli.md).
 
     dcsc pretrain {lunarlander,uav} [--quick] [--resume] [--out DIR] [key=value ...]
-    dcsc run {lunarlander,uav} [--methods M ...] [--operators P ...] [--quick] [key=value ...]
+    dcsc run {lunarlander,uav} [--quick] [--out DIR] [--methods M ...] [--operators P ...] [--fresh] [key=value ...]
+    dcsc sweep [--quick] [--out DIR] [--address ADDR] [--fresh] [key=value ...]
+    dcsc reproduce [--quick] [--results DIR] [key=value ...]
     dcsc evaluate [--results DIR]
-    dcsc reproduce [--quick] [--results DIR]
-    dcsc sweep [--quick] [--out DIR] [--address ADDR] [key=value ...]
-    dcsc play lunarlander [--assist {dcsc,none}] [--checkpoint PATH]
+    dcsc play lunarlander [--assist {dcsc,none}] [--checkpoint PATH] [--episodes N] [--seed S]
 
-Each sub-command hands its remaining arguments to the module that owns the job.
+Every parser of the project is built here (the recipes parse their command lines with
+these), and this module imports neither torch nor TorchRL: ``--help``, a bad argument and
+a bad config key are answered before the libraries load. ``key=value`` overrides may
+stand anywhere on the line. A user's mistake ends in one line on stderr and exit code 2,
+Ctrl-C in exit code 130; ``--debug`` (or ``DCSC_DEBUG=1``) shows the traceback instead.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
-import logging
+import importlib.util
+import os
+import re
 import sys
-from collections.abc import Sequence
+import textwrap
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any, NoReturn
 
 PRETRAIN_RECIPES = {
     "lunarlander": "recipes.pretrain_a2c_lunarlander",
     "uav": "recipes.pretrain_ddpg_uav",
 }
+TASKS = sorted(PRETRAIN_RECIPES)
+OVERRIDE = re.compile(r"^[A-Za-z_][\w.\-\[\]]*=")
+"""A ``key=value`` token (a path like ``runs/a=b`` has a ``/`` before its ``=``, an option a ``-``)."""
+
+CHECKPOINT_HELP = (
+    "Checkpoints: the machine of pretraining seed s is read from "
+    "<pretrain.out_dir>/seed<s>/checkpoint.pt, relative to the current folder "
+    "(pretrain.out_dir is runs/pretrain_<task>, runs/quick/pretrain_<task> with --quick); "
+    "a missing one is pretrained first, one pretraining per seed of pretrain.seeds (3 by "
+    "default, 1 with --quick)."
+)
 
 
-def _pretrain(args: argparse.Namespace, rest: list[str]) -> None:
-    importlib.import_module(PRETRAIN_RECIPES[args.task]).main(rest)
+def recipes_dir() -> Path:
+    """The ``recipes`` package's folder (its yaml configs), found without importing it."""
+    spec = importlib.util.find_spec("recipes")
+    if spec is None or not spec.submodule_search_locations:
+        raise ModuleNotFoundError("the recipes package is not installed (pip install -e .)")
+    return Path(next(iter(spec.submodule_search_locations)))
 
 
-def _run(args: argparse.Namespace, rest: list[str]) -> None:
-    from recipes.shared_control import main as shared_control
+class Parser(argparse.ArgumentParser):
+    """An ``ArgumentParser`` whose errors are one line: ``prog: error: ... (see prog --help)``."""
 
-    shared_control([args.task, *rest])
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", argparse.RawDescriptionHelpFormatter)
+        super().__init__(*args, **kwargs)
 
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
-def _evaluate(args: argparse.Namespace, rest: list[str]) -> None:
-    from recipes.reproduce import evaluate
-
-    evaluate(args.results)
-
-
-def _reproduce(args: argparse.Namespace, rest: list[str]) -> None:
-    from recipes.reproduce import reproduce
-
-    reproduce(args.results, quick=args.quick, overrides=rest)
-
-
-def _sweep(args: argparse.Namespace, rest: list[str]) -> None:
-    from recipes.sweep import main as sweep
-
-    sweep(rest)
-
-
-def _play(args: argparse.Namespace, rest: list[str]) -> None:
-    from dcsc_torchrl.humans.play import main as play_main
-
-    play_main([args.task, *rest])
+    def parse_args(self, args: Sequence[str] | None = None, namespace: Any = None) -> argparse.Namespace:  # type: ignore[override]
+        """Parses ``args``, with every ``key=value`` token collected into ``overrides`` wherever it stands."""
+        argv = list(sys.argv[1:] if args is None else args)
+        overrides = [a for a in argv if OVERRIDE.match(a)]
+        rest = [a for a in argv if not OVERRIDE.match(a)]
+        ns = super().parse_args(rest, namespace)
+        if hasattr(ns, "overrides"):
+            ns.overrides = [*ns.overrides, *overrides]
+        elif overrides:
+            self.error(f"dcsc {getattr(ns, 'command', '')} takes no key=value overrides, got {' '.join(overrides)}")
+        return ns
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``dcsc`` parser; sub-commands that hand over to a recipe leave ``--help`` to it."""
-    parser = argparse.ArgumentParser(prog="dcsc", description=__doc__.split("\n\n")[0])
-    commands = parser.add_subparsers(dest="command", required=True)
-    pretrain = commands.add_parser("pretrain", help="pretrain a machine policy (A2C / DDPG)", add_help=False)
-    pretrain.add_argument("task", choices=sorted(PRETRAIN_RECIPES))
-    pretrain.set_defaults(run=_pretrain)
-    run = commands.add_parser("run", help="the shared-control protocol for one task (recipes/shared_control.py)", add_help=False)
-    run.add_argument("task", choices=sorted(PRETRAIN_RECIPES))
-    run.set_defaults(run=_run)
-    evaluate = commands.add_parser("evaluate", help="redraw summaries and figures from results/*.csv")
-    evaluate.add_argument("--results", type=Path, default=Path("results"))
-    evaluate.set_defaults(run=_evaluate)
-    reproduce = commands.add_parser("reproduce", help="pretrain, run both experiments, write the report")
-    reproduce.add_argument("--quick", action="store_true", help="the same at a tiny scale (about a minute)")
-    reproduce.add_argument("--results", type=Path, default=None, help="default results/ (results/quick with --quick)")
-    reproduce.set_defaults(run=_reproduce)
-    sweep = commands.add_parser("sweep", help="the protocol's grid of cells as Ray tasks (recipes/sweep.py)", add_help=False)
-    sweep.set_defaults(run=_sweep)
-    play = commands.add_parser("play", help="fly TargetLunarLander yourself, alone or with DC-SC", add_help=False)
-    play.add_argument("task", choices=["lunarlander"])
-    play.set_defaults(run=_play)
+def _description(doc: str | None) -> str:
+    return (doc or "").strip().split("\n\n")[0]
+
+
+def _common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                        help="more output: TorchRL's INFO lines")
+    parser.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                        help="a traceback instead of a one-line error (also DCSC_DEBUG=1)")
+
+
+def _overrides(parser: argparse.ArgumentParser, example: str) -> None:
+    parser.add_argument("overrides", nargs="*", metavar="key=value",
+                        help=f"config overrides, anywhere on the line, hydra style: {example}")
+
+
+def add_recipe_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of a pretraining recipe: ``[--quick] [--resume] [--out DIR] [key=value ...]``."""
+    parser.add_argument("--quick", action="store_true", help="the tiny setting of the yaml's quick block (tests)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from the run's last checkpoint; refused if the config differs")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="run directory (default: <logger.out_dir>/seed<seed> with dcsc, logger.out_dir "
+                             "for the recipe script)")
+    _overrides(parser, "optim.lr=1e-3 train.episodes=100")
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> None:
-    logging.getLogger("torchrl").setLevel(logging.WARNING)
-    args, rest = build_parser().parse_known_args(sys.argv[1:] if argv is None else argv)
-    args.run(args, rest)
+def add_run_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``dcsc run`` / ``recipes/shared_control.py`` after the task."""
+    parser.add_argument("--quick", action="store_true", help="the tiny setting of the yaml's quick block (tests)")
+    parser.add_argument("--out", type=Path, default=Path("results"),
+                        help="results root: files go to OUT/<task>/ (default results/)")
+    parser.add_argument("--methods", "--method", nargs="+", default=None, metavar="METHOD",
+                        help="methods to run (default: every method of the protocol, experiment.METHODS)")
+    parser.add_argument("--operators", "--operator", nargs="+", default=None, metavar="PRESET",
+                        help="operator presets (default: the config's operator.presets)")
+    parser.add_argument("--fresh", action="store_true",
+                        help="delete the results of an earlier run in OUT/<task>/ and start over "
+                             "(needed when its config differs)")
+    _overrides(parser, "online.theta_lr=0.1 pretrain.out_dir=runs/mine")
+    return parser
+
+
+RUN_EPILOG = f"""\
+{textwrap.fill(CHECKPOINT_HELP, 88)}
+
+Outputs in OUT/<task>/: episodes.csv, trace.csv, theta.csv, summary.md, fig_*.png (all
+rewritten after every cell, so they always describe the same cells), each cell's files in
+cells/<operator>-seed<s>/, and run_config.yaml (the config the cells were run with).
+
+Resume: run the same command again; finished cells are skipped. A run into a folder
+whose run_config.yaml differs is refused (it names the keys) unless --fresh is given."""
+
+
+def add_sweep_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``dcsc sweep`` / ``recipes/sweep.py``."""
+    parser.add_argument("--quick", action="store_true", help="the tiny setting of the yamls' quick blocks (tests)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="results root (default results/, results/quick with --quick)")
+    parser.add_argument("--address", default=None,
+                        help="join this Ray cluster ('auto', HOST:PORT) instead of starting one")
+    parser.add_argument("--fresh", action="store_true",
+                        help="delete the results of an earlier run of another config and start over")
+    _overrides(parser, "ray.workers=4 tasks=[uav] lunarlander.protocol.max_steps=200")
+    return parser
+
+
+def add_reproduce_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``dcsc reproduce`` / ``recipes/reproduce.py``."""
+    parser.add_argument("--quick", action="store_true", help="the same at a tiny scale (about a minute)")
+    parser.add_argument("--results", type=Path, default=None,
+                        help="results root (default results/, results/quick with --quick)")
+    _overrides(parser, "protocol.max_steps=200 (given to both tasks)")
+    return parser
+
+
+def add_evaluate_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``dcsc evaluate``."""
+    parser.add_argument("--results", type=Path, default=Path("results"),
+                        help="results root holding <task>/episodes.csv (default results/)")
+    return parser
+
+
+def add_play_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``dcsc play`` (the ones ``dcsc_torchrl.humans.play`` reads)."""
+    parser.add_argument("--assist", choices=["dcsc", "none"], default="dcsc",
+                        help="share control with the pretrained machine (dcsc) or fly alone")
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="LunarLander pretraining checkpoint for --assist dcsc (default: where dcsc run "
+                             "reads seed 0's, <pretrain.out_dir>/seed0/checkpoint.pt of "
+                             "recipes/shared_control_lunarlander.yaml)")
+    parser.add_argument("--episodes", type=int, default=3, help="episodes to fly (default 3)")
+    parser.add_argument("--seed", type=int, default=0, help="the first episode's env seed (default 0)")
+    return parser
+
+
+# -- the sub-commands' work: every heavy import is inside ------------------------------
+def _say(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def _pretrain(args: argparse.Namespace) -> Path:
+    from dcsc_torchrl.checkpoint import checkpoint_path
+    from dcsc_torchrl.config import load_config
+
+    module = PRETRAIN_RECIPES[args.task]
+    cfg = load_config(recipes_dir() / f"{module.rsplit('.', 1)[1]}.yaml", args.overrides, quick=args.quick)
+    out = args.out or checkpoint_path(cfg.logger.out_dir, cfg.seed).parent
+    argv = [*(["--quick"] if args.quick else []), *(["--resume"] if args.resume else []), "--out", str(out),
+            *args.overrides]
+    importlib.import_module(module).main(argv)
+    _say(f"checkpoint in {out / 'checkpoint.pt'}")
+    return out
+
+
+def _run(args: argparse.Namespace) -> Path:
+    from dcsc_torchrl.config import load_config
+
+    # the config checked before torch loads: a typo is answered at once (run checks it again)
+    load_config(recipes_dir() / f"shared_control_{args.task}.yaml", args.overrides, quick=args.quick)
+    from recipes.shared_control import run
+
+    return run(args)
+
+
+def _evaluate(args: argparse.Namespace) -> Path:
+    from recipes.reproduce import evaluate
+
+    path = evaluate(args.results)
+    _say(f"results in {path.parent}")
+    return path
+
+
+def _reproduce(args: argparse.Namespace) -> Path:
+    from recipes.reproduce import reproduce
+
+    path = reproduce(args.results, quick=args.quick, overrides=args.overrides)
+    _say(f"results in {path.parent}")
+    return path
+
+
+def _sweep(args: argparse.Namespace) -> Any:
+    from dcsc_torchrl.config import load_config
+
+    sweep_overrides = [item for item in args.overrides if item.partition(".")[0] not in PRETRAIN_RECIPES]
+    load_config(recipes_dir() / "sweep.yaml", sweep_overrides, quick=args.quick)  # checked before Ray loads
+    for task in TASKS:
+        prefix = f"{task}."
+        load_config(recipes_dir() / f"shared_control_{task}.yaml",
+                    [item[len(prefix):] for item in args.overrides if item.startswith(prefix)], quick=args.quick)
+    from recipes.sweep import sweep
+
+    return sweep(args)
+
+
+def _play(args: argparse.Namespace) -> None:
+    checkpoint = args.checkpoint
+    if checkpoint is None and args.assist == "dcsc":
+        from dcsc_torchrl.checkpoint import checkpoint_path
+        from dcsc_torchrl.config import load_config
+
+        cfg = load_config(recipes_dir() / "shared_control_lunarlander.yaml")
+        checkpoint = checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])
+    from dcsc_torchrl.humans.play import main as play_main
+
+    play_main([args.task, "--assist", args.assist, *(["--checkpoint", str(checkpoint)] if checkpoint else []),
+               "--episodes", str(args.episodes), "--seed", str(args.seed)])
+
+
+COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], Any], Callable[[argparse.Namespace], Any]]] = {
+    "pretrain": ("pretrain a machine policy (A2C for lunarlander, DDPG for uav)", add_recipe_options, _pretrain),
+    "run": ("the shared-control protocol of one task, every cell, resumable", add_run_options, _run),
+    "sweep": ("the protocol's grid of cells as Ray tasks, here or on a cluster", add_sweep_options, _sweep),
+    "reproduce": ("pretrain, run both experiments, write the report", add_reproduce_options, _reproduce),
+    "evaluate": ("redraw summaries and figures from <results>/<task>/*.csv", add_evaluate_options, _evaluate),
+    "play": ("fly TargetLunarLander yourself, alone or with DC-SC", add_play_options, _play),
+}
+
+
+def build_parser() -> Parser:
+    """The ``dcsc`` parser: a sub-command per job, each with its own ``--help``."""
+    parser = Parser(prog="dcsc", description=_description(__doc__),
+                    epilog="Run `dcsc COMMAND --help` for a command's options; docs/cli.md for the whole story.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="more output: TorchRL's INFO lines")
+    parser.add_argument("--debug", action="store_true",
+                        help="a traceback instead of a one-line error (also DCSC_DEBUG=1)")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=Parser)
+    for name, (summary, add_options, handler) in COMMANDS.items():
+        sub = commands.add_parser(name, help=summary, description=summary, prog=f"dcsc {name}",
+                                  epilog=RUN_EPILOG if name == "run" else None)
+        if name in ("pretrain", "run"):
+            sub.add_argument("task", choices=TASKS, help="the task")
+        elif name == "play":
+            sub.add_argument("task", choices=["lunarlander"], help="the task (LunarLander only)")
+        add_options(sub)
+        _common(sub)
+        sub.set_defaults(handler=handler)
+    return parser
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip() or type(err).__name__
+    if isinstance(err, KeyError):  # str(KeyError('x')) is "'x'"
+        text = f"missing key {text}"
+    return " ".join(text.split())
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Runs ``dcsc``; returns the exit code (0, 2 for a user's mistake, 130 for Ctrl-C, 1 otherwise)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv or os.environ.get("DCSC_DEBUG", "") not in ("", "0")
+    try:
+        args = build_parser().parse_args(argv)
+        if args.verbose:
+            os.environ["DCSC_VERBOSE"] = "1"
+        else:
+            os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # read once, when TorchRL is imported
+        args.handler(args)
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        _say("dcsc: interrupted")
+        return 130
+    except (ValueError, FileNotFoundError, IsADirectoryError, PermissionError) as err:
+        if debug:
+            raise
+        _say(f"dcsc: error: {_one_line(err)}")
+        return 2
+    except Exception as err:  # a bug, not a mistake: still one line, the traceback on request
+        if debug:
+            raise
+        _say(f"dcsc: error: {type(err).__name__}: {_one_line(err)} (run with --debug for the traceback)")
+        return 1
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

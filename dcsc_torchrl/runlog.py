@@ -1,13 +1,92 @@
-"""One wide CSV table per run, flushed row by row, and its learning-curve figure."""
+"""One wide CSV table per run, flushed row by row, its learning-curve figure, and progress lines."""
 
 from __future__ import annotations
 
 import math
 import os
+import sys
+import time
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any, TextIO
 
 import pandas as pd
+
+
+class Progress:
+    """A progress bar on a terminal, a plain line every ``every`` seconds elsewhere.
+
+    ``tqdm(disable=None)`` is silent when stderr is not a terminal (a log file, CI, ``nohup``):
+    a long run then prints nothing for minutes. This keeps tqdm's bar on a terminal and
+    otherwise writes ``desc: n/total unit (elapsed) postfix`` lines, the first and the last
+    always. It has tqdm's ``update`` / ``set_postfix`` / ``close`` and is a context manager.
+
+    Args:
+        total: the number of steps.
+        desc: what is counted (``"lunarlander cells"``).
+        unit: the unit of a step.
+        initial: steps done before (a resumed run).
+        every: seconds between two plain lines (0: a line per update).
+        file: where to write (stderr).
+
+    Examples:
+        >>> import io
+        >>> out = io.StringIO()
+        >>> with Progress(2, "cells", "cell", every=0, file=out) as bar:
+        ...     bar.update()
+        ...     bar.update()
+        >>> out.getvalue().splitlines()[-1].split(" (")[0]
+        'cells: 2/2 cell'
+    """
+
+    def __init__(self, total: int, desc: str, unit: str = "it", *, initial: int = 0, every: float = 30.0,
+                 file: TextIO | None = None) -> None:
+        self.total, self.desc, self.unit, self.n, self.every = total, desc, unit, initial, every
+        self.file = file if file is not None else sys.stderr
+        self.postfix = ""
+        self._start = self._last = time.monotonic()
+        self._bar: Any = None
+        self._closed = False
+        if getattr(self.file, "isatty", lambda: False)():
+            from tqdm.auto import tqdm
+
+            self._bar = tqdm(total=total, initial=initial, desc=desc, unit=unit, file=self.file)
+        else:
+            self._line()
+
+    def _line(self) -> None:
+        elapsed = time.monotonic() - self._start
+        postfix = f" {self.postfix}" if self.postfix else ""
+        print(f"{self.desc}: {self.n}/{self.total} {self.unit} ({elapsed:.0f} s){postfix}", file=self.file,
+              flush=True)
+        self._last = time.monotonic()
+
+    def update(self, n: int = 1) -> None:
+        self.n += n
+        if self._bar is not None:
+            self._bar.update(n)
+        elif self.n >= self.total or time.monotonic() - self._last >= self.every:
+            self._line()
+
+    def set_postfix(self, **values: object) -> None:
+        self.postfix = ", ".join(f"{k}={v}" for k, v in values.items())
+        if self._bar is not None:
+            self._bar.set_postfix(values)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self._bar is not None:
+            self._bar.close()
+        elif self.n < self.total:
+            self._line()
+
+    def __enter__(self) -> Progress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 class RunLog:

@@ -1,6 +1,17 @@
-"""The two tasks as batched TorchRL environments, built the same way by every recipe."""
+"""The two tasks as batched TorchRL environments, built the same way by every recipe.
+
+Building a vector env, ``GymWrapper`` runs a dummy rollout and logs two INFO lines
+("info_dict_reader does not have specs", "check_env_specs succeeded!"), dozens per run:
+:func:`quiet_torchrl` holds TorchRL's logger at WARNING while an env is built, unless
+``DCSC_VERBOSE`` is set (``dcsc -v``).
+"""
 
 from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Iterator
 
 import gymnasium as gym
 import torch
@@ -26,6 +37,19 @@ LUNAR_INFO_KEYS = ("success", "crashed", "landed_outside")
 UAV_INFO_KEYS = ("success", "collision", "out_of_bounds", "path_length")
 MAX_STEPS = {"lunarlander": gym.spec(LUNAR_ID).max_episode_steps, "uav": UAV_HORIZON}
 """Each task's own episode limit: gymnasium's TimeLimit (1000 frames), the UAV horizon (500 steps)."""
+
+
+@contextlib.contextmanager
+def quiet_torchrl() -> Iterator[None]:
+    """TorchRL's INFO lines silenced inside the block (kept when ``DCSC_VERBOSE`` is set)."""
+    logger = logging.getLogger("torchrl")
+    level = logger.level
+    if not os.environ.get("DCSC_VERBOSE"):
+        logger.setLevel(max(level, logging.WARNING))
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 def make_lunar_env(
@@ -54,7 +78,8 @@ def make_lunar_env(
         disable_env_checker=True,
         **({} if max_steps is None else {"max_episode_steps": max_steps}),
     )
-    base = GymWrapper(vector)
+    with quiet_torchrl():
+        base = GymWrapper(vector)
     info_spec = Composite(
         {key: Categorical(2, shape=(num_envs,), dtype=torch.bool) for key in LUNAR_INFO_KEYS},
         shape=[num_envs],

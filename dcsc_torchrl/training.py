@@ -9,7 +9,6 @@ from a checkpoint replays exactly the rows an uninterrupted run writes (same see
 
 from __future__ import annotations
 
-import argparse
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -25,19 +24,19 @@ from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
 from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from tqdm.auto import tqdm
 
 from dcsc_torchrl.checkpoint import (
     load_checkpoint,
     load_module_state,
     load_replay_buffer_state,
+    remove_stale_temp_files,
     replay_buffer_state,
     rng_state,
     save_checkpoint,
     set_rng_state,
 )
-from dcsc_torchrl.config import load_config, to_plain
-from dcsc_torchrl.runlog import RunLog, plot_learning_curve
+from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
+from dcsc_torchrl.runlog import Progress, RunLog, plot_learning_curve
 
 
 @dataclass
@@ -51,12 +50,10 @@ class RecipeArgs:
 
 
 def parse_recipe_args(argv: Sequence[str] | None, description: str) -> RecipeArgs:
-    parser = argparse.ArgumentParser(description=description)
-    parser.add_argument("--quick", action="store_true", help="the tiny setting (tests, QUICK=1)")
-    parser.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
-    parser.add_argument("--out", type=Path, default=None, help="run directory (default: logger.out_dir)")
-    parser.add_argument("overrides", nargs="*", help="config overrides, hydra style: optim.lr=1e-3")
-    ns = parser.parse_args(argv)
+    """A pretraining recipe's command line, parsed by the ``dcsc pretrain`` options (one home)."""
+    from dcsc_torchrl.cli import Parser, add_recipe_options
+
+    ns = add_recipe_options(Parser(description=description.strip().split("\n\n")[0])).parse_args(argv)
     return RecipeArgs(ns.quick, ns.resume, ns.out, list(ns.overrides))
 
 
@@ -212,19 +209,31 @@ class TrainingRun:
         self.episodes = 0
         self.frames = 0
         self.segment = 0
-        self._progress: tqdm | None = None
+        self._progress: Progress | None = None
 
     # -- resume ---------------------------------------------------------------------
     def start(self, *, resume: bool) -> None:
-        """Starts fresh (removing an old log) or resumes from the last checkpoint."""
+        """Starts fresh (removing an old log) or resumes from the last checkpoint.
+
+        The temporary files of a checkpoint write that was killed are removed first.
+
+        Raises:
+            ConfigError: resuming a checkpoint written with another config (the keys
+                that differ are named; ``logger.out_dir`` and ``threads`` may differ).
+        """
+        remove_stale_temp_files(self.checkpoint_path)
         if resume:
-            self._restore(load_checkpoint(self.checkpoint_path, task=self.task))
+            data = load_checkpoint(self.checkpoint_path, task=self.task)
+            changed = config_diff(data.get("config", {}), to_plain(self.cfg), ignore=("logger.out_dir", "threads"))
+            if changed:
+                raise ConfigError(
+                    f"cannot resume {self.checkpoint_path}: it was written with another config "
+                    f"({'; '.join(changed)}); resume with the same settings, or start over without --resume"
+                )
+            self._restore(data)
         else:
             self.log.path.unlink(missing_ok=True)
-        self._progress = tqdm(
-            total=self.total_episodes, initial=self.episodes, desc=f"{self.task} episodes", unit="ep",
-            disable=None,
-        )
+        self._progress = Progress(self.total_episodes, f"{self.task} episodes", "ep", initial=self.episodes)
 
     def _restore(self, data: dict[str, Any]) -> None:
         for name, obj in self.stateful.items():
@@ -269,12 +278,20 @@ class TrainingRun:
         self,
         segment_collector: Callable[[int], BaseCollector],
         update: Callable[[TensorDictBase], Mapping[str, float]],
+        stop: Callable[[int], bool] | None = None,
     ) -> None:
         """The training loop: segment after segment until the episode budget is spent.
 
         Each segment gets a fresh collector from ``segment_collector(seed)``; every batch
         goes through ``update`` (the algorithm's step, returning its loss metrics) and
         its finished episodes are logged; the segment closes with a checkpoint.
+
+        Args:
+            segment_collector: the collector of a segment, from its env seed.
+            update: one algorithm step on a batch; returns the loss metrics to log.
+            stop: optional early stop, asked after each segment with the number of
+                segments done (e.g. "does the greedy machine land often enough?");
+                ``True`` ends training before the episode budget is spent.
         """
         threads = torch.get_num_threads()
         while not self.done:
@@ -286,6 +303,8 @@ class TrainingRun:
             collector.shutdown()
             torch.set_num_threads(threads)  # a multi-process collector's shutdown changes it
             self.end_segment()
+            if stop is not None and not self.done and stop(self.segment):
+                break
 
     def end_segment(self) -> None:
         """Closes the segment with an atomic checkpoint."""

@@ -1,6 +1,6 @@
 """``make reproduce``: both experiments end to end, then one report (DESIGN §5).
 
-    python -m recipes.reproduce [--quick] [--results DIR]
+    dcsc reproduce [--quick] [--results DIR] [key=value ...]
 
 Pretrains every machine that has no checkpoint yet (A2C and DDPG, every pretraining
 seed), runs the shared-control protocol of both tasks for every operator preset, and
@@ -11,13 +11,13 @@ with the wall time. ``--quick`` runs the same code paths at a tiny scale into
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import pandas as pd
 
+from dcsc_torchrl.cli import Parser, add_reproduce_options
 from dcsc_torchrl.report import write_task_figures, write_task_summary
 from recipes.shared_control import main as shared_control
 
@@ -59,11 +59,8 @@ def reproduce(results: Path | None = None, *, quick: bool = False, overrides: Se
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--results", type=Path, default=None)
-    args = parser.parse_args(argv)
-    return reproduce(args.results, quick=args.quick)
+    args = add_reproduce_options(Parser(description=__doc__.split("\n\n")[0])).parse_args(argv)
+    return reproduce(args.results, quick=args.quick, overrides=args.overrides)
 
 
 if __name__ == "__main__":

@@ -8,47 +8,68 @@ every operator preset, one *cell* of the protocol runs (``dcsc_torchrl.experimen
 3. the 50 validation scenarios (5 groups of 10) for machine / operator / HULA / DC-SC,
    DC-SC still learning online.
 
-    python recipes/shared_control.py {lunarlander,uav} [--quick] [--out DIR]
-        [--methods M ...] [--operators P ...] [key=value ...]
+    dcsc run {lunarlander,uav} [--quick] [--out DIR] [--methods M ...] [--operators P ...]
+        [--fresh] [key=value ...]
 
 Outputs in ``DIR/<task>/`` (default ``results/<task>/``): ``episodes.csv`` (every episode of
 every phase), ``trace.csv`` (every step of scenario 0 for each method, main operator and
 first pretraining seed), ``theta.csv`` (every online update of theta), ``summary.md`` and
-the figures ``fig_*.png``. The CSVs are rewritten (atomically) after every cell, so a run
-that stops halfway keeps the cells it finished.
+the figures ``fig_*.png``. Each cell writes its rows to ``cells/<operator>-seed<s>/``, its
+``cell.json`` last; after every cell the task's tables, summary and figures are gathered
+again from the finished cells (:func:`gather`, the one writer of these files, which
+``dcsc sweep`` uses too), so the folder never describes two different sets of cells.
+
+Resume: running the same command again skips the cells with a ``cell.json``. The config
+the cells ran with is kept in ``run_config.yaml``; a run into a folder whose record differs
+(or into an older folder with no record) is refused with the keys that differ, unless
+``--fresh`` deletes the old results first. Temporary files of a killed run are removed.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
-from collections.abc import Sequence
+import shutil
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 import torch
+import yaml
 from omegaconf import DictConfig
-from tqdm.auto import tqdm
 
-from dcsc_torchrl.checkpoint import load_checkpoint
-from dcsc_torchrl.config import load_config
+from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
+from dcsc_torchrl.cli import TASKS, Parser, add_run_options
+from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
 from dcsc_torchrl.experiment import METHODS, run_cell
+from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.report import write_task_figures, write_task_summary
+from dcsc_torchrl.runlog import Progress
 
 RECIPES = Path(__file__).parent
 PRETRAIN = {"lunarlander": "pretrain_a2c_lunarlander", "uav": "pretrain_ddpg_uav"}
+TABLES = ("episodes", "trace", "theta")
+RUN_RECORD = "run_config.yaml"
+OUTPUTS = ("episodes.csv", "trace.csv", "theta.csv", "summary.md", "failed_cells.csv", "cells", "fig_*.png")
+"""What a run writes in ``<out>/<task>/`` (removed by ``--fresh``, with :data:`RUN_RECORD`)."""
 
 
 def pretrained_machine(task: str, cfg: DictConfig, seed: int, *, quick: bool) -> tuple[torch.nn.Module, torch.nn.Module]:
     """The machine actor and critic of pretraining seed ``seed``; pretrains it when missing."""
-    out = Path(cfg.pretrain.out_dir) / f"seed{seed}"
-    if not (out / "checkpoint.pt").exists():
+    path = checkpoint_path(cfg.pretrain.out_dir, seed)
+    if not path.exists():
         import importlib
 
+        print(f"{task}: no checkpoint at {path}, pretraining seed {seed} first", file=sys.stderr, flush=True)
         recipe = importlib.import_module(f"recipes.{PRETRAIN[task]}")
-        recipe.main([*(["--quick"] if quick else []), "--out", str(out), f"seed={seed}"])
-    return machine_from_checkpoint(load_checkpoint(out / "checkpoint.pt", task=task), task)
+        recipe.main([*(["--quick"] if quick else []), "--out", str(path.parent), f"seed={seed}"])
+    return machine_from_checkpoint(load_checkpoint(path, task=task), task)
 
 
 def write_csv(rows: list[dict], path: Path) -> None:
@@ -70,40 +91,200 @@ def cell_grid(presets: Sequence[str], seeds: Sequence[int], main: str) -> tuple[
     return cells, main_operator
 
 
+@dataclass(frozen=True)
+class Cell:
+    """One cell of the grid; ``trace`` records scenario 0 (main operator, first pretraining seed)."""
+
+    task: str
+    operator: str
+    pretrain_seed: int
+    trace: bool
+
+    @property
+    def name(self) -> str:
+        return f"{self.operator}-seed{self.pretrain_seed}"
+
+    def directory(self, out: Path) -> Path:
+        """The cell's own files: ``out/<task>/cells/<operator>-seed<s>/``."""
+        return out / self.task / "cells" / self.name
+
+    def done(self, out: Path) -> bool:
+        return (self.directory(out) / "cell.json").exists()
+
+
+@dataclass
+class TaskGrid:
+    """One task's protocol config and cells, in the order of :func:`cell_grid`."""
+
+    task: str
+    cfg: DictConfig
+    cells: list[Cell]
+    main_operator: str
+    main_seed: int
+
+
+def make_grid(task: str, cfg: DictConfig, presets: Sequence[str], seeds: Sequence[int]) -> TaskGrid:
+    """The cells of ``task`` for ``presets`` x ``seeds``; ``pretrain.out_dir`` made absolute.
+
+    An absolute ``pretrain.out_dir`` lets the cells run in other processes or nodes, and
+    makes the run's record the same from wherever it was started.
+    """
+    cfg.pretrain.out_dir = str(Path(cfg.pretrain.out_dir).resolve())
+    grid, main_operator = cell_grid(list(presets), [int(s) for s in seeds], cfg.operator.main)
+    cells = [Cell(task, preset, seed, trace=traced) for seed, preset, traced in grid]
+    return TaskGrid(task, cfg, cells, main_operator, int(seeds[0]))
+
+
+def check_names(kind: str, names: Sequence[str], known: Sequence[str]) -> list[str]:
+    """``names`` when every one is in ``known``; else a :class:`ConfigError` listing the known ones."""
+    unknown = [name for name in names if name not in known]
+    if unknown:
+        raise ConfigError(f"unknown {kind} {', '.join(map(repr, unknown))}: expected one of {', '.join(known)}")
+    return list(names)
+
+
+def write_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: Path, machine: torch.nn.Module,
+               critic: torch.nn.Module, info: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Runs one cell (``run_cell``) and writes its rows to its directory, ``cell.json`` last (atomic files)."""
+    directory = cell.directory(out)
+    directory.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    result = run_cell(cell.task, cfg, cell.operator, cell.pretrain_seed, machine, critic, methods=methods,
+                      trace=cell.trace)
+    for name, rows in zip(TABLES, (result.episodes, result.traces, result.theta), strict=True):
+        if rows:
+            write_csv(rows, directory / f"{name}.csv")
+        else:
+            (directory / f"{name}.csv").unlink(missing_ok=True)
+    record = {"task": cell.task, "operator": cell.operator, "pretrain_seed": cell.pretrain_seed,
+              "methods": list(methods), "seconds": time.perf_counter() - start,
+              "hula_threshold": result.hula_threshold, **(info or {})}
+    tmp = directory / "cell.json.tmp"
+    tmp.write_text(json.dumps(record, indent=2))
+    os.replace(tmp, directory / "cell.json")  # last: the cell counts as done once this exists
+    return record
+
+
+def failed_section(failed: Sequence[dict[str, Any]]) -> str:
+    """The "Failed cells" section appended to a task's ``summary.md``."""
+    lines = ["", "## Failed cells", "",
+             f"{len(failed)} cell(s) failed after every retry (tracebacks in `cells/<cell>/error.txt`):", "",
+             "| cell | attempts | error |", "|---|---|---|"]
+    for row in failed:
+        error = row["error"].replace("|", "\\|")
+        lines.append(f"| {row['cell']} | {row['attempts']} | {error} |")
+    return "\n".join(lines) + "\n"
+
+
+def gather(out: Path, grid: TaskGrid, failed: Sequence[dict[str, Any]] = ()) -> Path:
+    """The done cells' rows into ``out/<task>/``'s CSVs, ``summary.md`` and figures; the failures reported."""
+    task_dir = out / grid.task
+    task_dir.mkdir(parents=True, exist_ok=True)
+    done = [cell for cell in grid.cells if cell.done(out)]
+    for name in TABLES:
+        paths = [path for cell in done if (path := cell.directory(out) / f"{name}.csv").exists()]
+        if paths:
+            # read as text: every value passes through exactly as its cell wrote it
+            frame = pd.concat([pd.read_csv(path, dtype=str, keep_default_na=False) for path in paths],
+                              ignore_index=True)
+            write_csv(frame.to_dict("records"), task_dir / f"{name}.csv")
+        else:
+            (task_dir / f"{name}.csv").unlink(missing_ok=True)
+    summary = task_dir / "summary.md"
+    if done:
+        write_task_summary(task_dir, grid.task, grid.main_operator, grid.main_seed)
+        if (task_dir / "trace.csv").exists():
+            write_task_figures(task_dir, grid.task, grid.main_operator, grid.main_seed)
+    else:
+        summary.write_text(f"# {grid.task}: no cell finished\n")
+    failed_csv = task_dir / "failed_cells.csv"
+    if failed:
+        write_csv(list(failed), failed_csv)
+        summary.write_text(summary.read_text() + failed_section(failed))
+    else:
+        failed_csv.unlink(missing_ok=True)
+    return summary
+
+
+def run_record(grid: TaskGrid, methods: Sequence[str]) -> dict[str, Any]:
+    """What the results of ``grid`` depend on: its config (but ``threads``), methods and cells."""
+    config = to_plain(grid.cfg)
+    config.pop("threads", None)
+    return {"config": config, "methods": list(methods), "cells": [cell.name for cell in grid.cells]}
+
+
+def prepare_results(task_dir: Path, record: Mapping[str, Any], *, fresh: bool) -> None:
+    """Claims ``task_dir`` for a run of ``record``: refuses another config's results unless ``fresh``.
+
+    ``fresh`` removes the earlier run's outputs (:data:`OUTPUTS`). The temporary files of a
+    killed run are removed in any case; the record is written to :data:`RUN_RECORD`.
+
+    Raises:
+        ConfigError: ``task_dir`` holds results of another config, or of a run that kept no record.
+    """
+    record_path = task_dir / RUN_RECORD
+    old_outputs = [path for pattern in OUTPUTS for path in task_dir.glob(pattern)]
+    if fresh:
+        for path in old_outputs:
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+        record_path.unlink(missing_ok=True)
+    elif record_path.exists():
+        old = yaml.safe_load(record_path.read_text()) or {}
+        changed = config_diff(old, json.loads(json.dumps(record)))
+        if changed:
+            more = f"; and {len(changed) - 5} more" if len(changed) > 5 else ""
+            raise ConfigError(f"{task_dir} holds results of another config ({'; '.join(changed[:5])}{more}): "
+                              "pass --fresh to replace them, or choose another --out")
+    elif old_outputs:
+        raise ConfigError(f"{task_dir} holds results of an earlier run with no {RUN_RECORD}: pass --fresh to "
+                          "replace them, or choose another --out")
+    for tmp in [*task_dir.glob("*.tmp"), *task_dir.glob("cells/*/*.tmp")]:
+        tmp.unlink(missing_ok=True)
+    task_dir.mkdir(parents=True, exist_ok=True)
+    tmp = record_path.with_suffix(".yaml.tmp")
+    tmp.write_text(yaml.safe_dump(json.loads(json.dumps(record)), sort_keys=False))
+    os.replace(tmp, record_path)
+
+
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("task", choices=sorted(PRETRAIN))
-    parser.add_argument("--quick", action="store_true", help="the tiny setting (tests, QUICK=1)")
-    parser.add_argument("--out", type=Path, default=Path("results"), help="results root (default results/)")
-    parser.add_argument("--methods", "--method", nargs="+", choices=METHODS, default=list(METHODS))
-    parser.add_argument("--operators", "--operator", nargs="+", default=None, help="operator presets (default: the config's)")
-    parser.add_argument("overrides", nargs="*", help="config overrides, hydra style: online.theta_lr=0.1")
-    return parser.parse_intermixed_args(argv)
+    """The command line of ``dcsc run`` (the same options, :func:`dcsc_torchrl.cli.add_run_options`)."""
+    parser = Parser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("task", choices=TASKS, help="the task")
+    return add_run_options(parser).parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> Path:
+    """``dcsc run``: every cell of ``args.task`` not done yet, the outputs gathered after each; returns the folder.
+
+    Everything the command line names (config keys, methods, operator presets, the
+    results folder's earlier config) is checked before a machine is loaded or pretrained.
+    """
+    cfg = load_config(RECIPES / f"shared_control_{args.task}.yaml", args.overrides, quick=args.quick)
+    methods = tuple(check_names("method", args.methods or METHODS, METHODS))
+    presets = check_names("operator preset", list(args.operators or cfg.operator.presets), list(PRESETS))
+    grid = make_grid(args.task, cfg, presets, list(cfg.pretrain.seeds))
+    task_dir = Path(args.out) / args.task
+    prepare_results(task_dir, run_record(grid, methods), fresh=args.fresh)
+    torch.set_num_threads(cfg.threads)
+
+    done = sum(cell.done(Path(args.out)) for cell in grid.cells)
+    with Progress(len(grid.cells), f"{args.task} cells", "cell", initial=done, every=0) as progress:
+        for cell in grid.cells:
+            if cell.done(Path(args.out)):
+                continue
+            machine, critic = pretrained_machine(args.task, cfg, cell.pretrain_seed, quick=args.quick)
+            write_cell(cell, cfg, methods, Path(args.out), machine, critic)
+            gather(Path(args.out), grid)
+            progress.set_postfix(last=cell.name)
+            progress.update()
+    if not (task_dir / "summary.md").exists() or done == len(grid.cells):
+        gather(Path(args.out), grid)  # every cell was done before: the outputs, redrawn from them
+    print(f"results in {task_dir}", file=sys.stderr, flush=True)
+    return task_dir
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
-    args = parse_args(argv)
-    cfg = load_config(RECIPES / f"shared_control_{args.task}.yaml", args.overrides, quick=args.quick)
-    torch.set_num_threads(cfg.threads)
-    seeds = list(cfg.pretrain.seeds)
-    cells, main_operator = cell_grid(args.operators or list(cfg.operator.presets), seeds, cfg.operator.main)
-    out = args.out / args.task
-    out.mkdir(parents=True, exist_ok=True)
-
-    episodes, traces, thetas = [], [], []
-    for seed, preset, traced in tqdm(cells, desc=f"{args.task} cells", unit="cell", disable=None):
-        machine, critic = pretrained_machine(args.task, cfg, seed, quick=args.quick)
-        result = run_cell(args.task, cfg, preset, seed, machine, critic, methods=tuple(args.methods), trace=traced)
-        episodes += result.episodes
-        traces += result.traces
-        thetas += result.theta
-        write_csv(episodes, out / "episodes.csv")
-        write_csv(traces, out / "trace.csv")
-        write_csv(thetas, out / "theta.csv")
-
-    write_task_summary(out, args.task, main_operator, seeds[0])
-    write_task_figures(out, args.task, main_operator, seeds[0])
-    return out
+    return run(parse_args(argv))
 
 
 if __name__ == "__main__":

@@ -14,12 +14,16 @@ sweep runs the grid of cells as Ray tasks, one CPU each (docs/scaling.md):
    ``theta.csv``, ``summary.md`` and the figures: the files ``make reproduce`` writes, rows
    in the same order.
 
+These are the files ``dcsc run`` writes (``recipes/shared_control.py`` holds the cell, its
+files and the gathering; this module adds Ray), so a sweep and a serial run can finish each
+other's folders; a folder of another config is refused unless ``--fresh``.
+
 A cell that raises is re-run by Ray (``ray.retries`` times); one that keeps failing is
 listed with its error in ``DIR/<task>/failed_cells.csv`` and in a "Failed cells" section
 of ``summary.md`` (traceback in its ``error.txt``), and the other cells' rows are kept. A
 cell with a ``cell.json`` is done: running the sweep again runs only the others.
 
-    dcsc sweep [--quick] [--out DIR] [--address ADDR] [key=value ...]
+    dcsc sweep [--quick] [--out DIR] [--address ADDR] [--fresh] [key=value ...]
 
 ``key=value`` sets the sweep config (``recipes/sweep.yaml``: ``ray.workers=4``,
 ``tasks=[uav]``), or, prefixed with a task, that task's protocol config
@@ -30,64 +34,43 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import logging
 import os
 import re
 import socket
-import time
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import pandas as pd
 import ray
 import torch
 from omegaconf import DictConfig
-from tqdm.auto import tqdm
 
-from dcsc_torchrl.checkpoint import load_checkpoint
+from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
+from dcsc_torchrl.cli import Parser, add_sweep_options
 from dcsc_torchrl.config import load_config
-from dcsc_torchrl.experiment import METHODS, run_cell
+from dcsc_torchrl.experiment import METHODS
 from dcsc_torchrl.networks import machine_from_checkpoint
-from dcsc_torchrl.report import write_task_figures, write_task_summary
-from recipes.shared_control import PRETRAIN, RECIPES, cell_grid, pretrained_machine, write_csv
+from dcsc_torchrl.runlog import Progress
+from recipes.shared_control import (
+    PRETRAIN,
+    RECIPES,
+    TABLES,
+    Cell,
+    TaskGrid,
+    gather,
+    make_grid,
+    prepare_results,
+    pretrained_machine,
+    run_record,
+    write_cell,
+)
 
 CONFIG = Path(__file__).with_suffix(".yaml")
-TABLES = ("episodes", "trace", "theta")
-
-
-@dataclass(frozen=True)
-class Cell:
-    """One cell of the grid; ``trace`` records scenario 0 (main operator, first pretraining seed)."""
-
-    task: str
-    operator: str
-    pretrain_seed: int
-    trace: bool
-
-    @property
-    def name(self) -> str:
-        return f"{self.operator}-seed{self.pretrain_seed}"
-
-    def directory(self, out: Path) -> Path:
-        """The cell's own files: ``out/<task>/cells/<operator>-seed<s>/``."""
-        return out / self.task / "cells" / self.name
-
-    def done(self, out: Path) -> bool:
-        return (self.directory(out) / "cell.json").exists()
-
-
-@dataclass
-class TaskGrid:
-    """One task's protocol config and cells, in the order ``recipes/shared_control.py`` runs them."""
-
-    task: str
-    cfg: DictConfig
-    cells: list[Cell]
-    main_operator: str
-    main_seed: int
+__all__ = ["TABLES", "Cell", "SweepResult", "TaskGrid", "gather", "main", "run_sweep", "split_overrides", "sweep",
+           "task_grid"]
 
 
 @dataclass
@@ -106,12 +89,9 @@ def task_grid(task: str, sweep: DictConfig, overrides: Sequence[str] = (), *, qu
     ``pretrain.out_dir`` is made absolute: the cells may run in other processes or nodes.
     """
     cfg = load_config(RECIPES / f"shared_control_{task}.yaml", overrides, quick=quick)
-    cfg.pretrain.out_dir = str(Path(cfg.pretrain.out_dir).resolve())
     presets = list(sweep.operators or cfg.operator.presets)
     seeds = [int(seed) for seed in (sweep.pretrain_seeds or cfg.pretrain.seeds)]
-    grid, main_operator = cell_grid(presets, seeds, cfg.operator.main)
-    cells = [Cell(task, preset, seed, trace=traced) for seed, preset, traced in grid]
-    return TaskGrid(task, cfg, cells, main_operator, seeds[0])
+    return make_grid(task, cfg, presets, seeds)
 
 
 def _worker_setup() -> None:
@@ -127,8 +107,8 @@ def ensure_pretrained(task: str, cfg: DictConfig, seed: int, quick: bool) -> str
     earlier attempt of this task) is resumed to the end first.
     """
     _worker_setup()
-    out = Path(cfg.pretrain.out_dir) / f"seed{seed}"
-    checkpoint = out / "checkpoint.pt"
+    checkpoint = checkpoint_path(cfg.pretrain.out_dir, seed)
+    out = checkpoint.parent
     if checkpoint.exists():
         data = load_checkpoint(checkpoint, task=task)
         if data["episodes"] < data["config"]["train"]["episodes"]:
@@ -152,22 +132,9 @@ def run_sweep_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: s
     directory = cell.directory(Path(out))
     directory.mkdir(parents=True, exist_ok=True)
     attempts = _count_attempt(directory)
-    start = time.perf_counter()
     machine, critic = machine_from_checkpoint(load_checkpoint(checkpoint, task=cell.task), cell.task)
-    result = run_cell(cell.task, cfg, cell.operator, cell.pretrain_seed, machine, critic, methods=methods,
-                      trace=cell.trace)
-    for name, rows in zip(TABLES, (result.episodes, result.traces, result.theta), strict=True):
-        if rows:
-            write_csv(rows, directory / f"{name}.csv")
-        else:
-            (directory / f"{name}.csv").unlink(missing_ok=True)
-    info = {"task": cell.task, "operator": cell.operator, "pretrain_seed": cell.pretrain_seed,
-            "methods": list(methods), "seconds": time.perf_counter() - start, "attempts": attempts,
-            "hula_threshold": result.hula_threshold, "host": socket.gethostname(), "pid": os.getpid()}
-    tmp = directory / "cell.json.tmp"
-    tmp.write_text(json.dumps(info, indent=2))
-    os.replace(tmp, directory / "cell.json")  # last: the cell counts as done once this exists
-    return info
+    return write_cell(cell, cfg, methods, Path(out), machine, critic,
+                      {"attempts": attempts, "host": socket.gethostname(), "pid": os.getpid()})
 
 
 def _failure(out: Path, cell: Cell, err: Exception) -> dict[str, Any]:
@@ -217,7 +184,7 @@ def run_cells(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], metho
                                                      checkpoints[cell.task, cell.pretrain_seed])
         pending[ref] = cell
     ran, failed = [], []
-    with tqdm(total=len(pending), desc="cells", unit="cell", disable=None) as progress:
+    with Progress(len(pending), "cells", "cell", every=0) as progress:
         while pending:
             [ref], _ = ray.wait(list(pending))
             cell = pending.pop(ref)
@@ -230,49 +197,8 @@ def run_cells(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], metho
     return ran, failed
 
 
-def failed_section(failed: Sequence[dict[str, Any]]) -> str:
-    """The "Failed cells" section appended to a task's ``summary.md``."""
-    lines = ["", "## Failed cells", "",
-             f"{len(failed)} cell(s) failed after every retry (tracebacks in `cells/<cell>/error.txt`):", "",
-             "| cell | attempts | error |", "|---|---|---|"]
-    for row in failed:
-        error = row["error"].replace("|", "\\|")
-        lines.append(f"| {row['cell']} | {row['attempts']} | {error} |")
-    return "\n".join(lines) + "\n"
-
-
-def gather(out: Path, grid: TaskGrid, failed: Sequence[dict[str, Any]]) -> Path:
-    """The done cells' rows into ``out/<task>/``'s CSVs, ``summary.md`` and figures; the failures reported."""
-    task_dir = out / grid.task
-    task_dir.mkdir(parents=True, exist_ok=True)
-    done = [cell for cell in grid.cells if cell.done(out)]
-    for name in TABLES:
-        paths = [path for cell in done if (path := cell.directory(out) / f"{name}.csv").exists()]
-        if paths:
-            # read as text: every value passes through exactly as its cell wrote it
-            frame = pd.concat([pd.read_csv(path, dtype=str, keep_default_na=False) for path in paths],
-                              ignore_index=True)
-            write_csv(frame.to_dict("records"), task_dir / f"{name}.csv")
-        else:
-            (task_dir / f"{name}.csv").unlink(missing_ok=True)
-    summary = task_dir / "summary.md"
-    if done:
-        write_task_summary(task_dir, grid.task, grid.main_operator, grid.main_seed)
-        if (task_dir / "trace.csv").exists():
-            write_task_figures(task_dir, grid.task, grid.main_operator, grid.main_seed)
-    else:
-        summary.write_text(f"# {grid.task}: no cell finished\n")
-    failed_csv = task_dir / "failed_cells.csv"
-    if failed:
-        write_csv(list(failed), failed_csv)
-        summary.write_text(summary.read_text() + failed_section(failed))
-    else:
-        failed_csv.unlink(missing_ok=True)
-    return summary
-
-
 def run_sweep(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...] = METHODS, *, quick: bool = False,
-              retries: int = 2, address: str | None = None, workers: int = 2) -> SweepResult:
+              retries: int = 2, address: str | None = None, workers: int = 2, fresh: bool = False) -> SweepResult:
     """Every cell of ``grids`` not done yet, as Ray tasks, then every task's outputs gathered.
 
     Args:
@@ -283,8 +209,11 @@ def run_sweep(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...] = M
         retries: Ray re-runs of a failing cell or pretraining.
         address: a Ray cluster to join; ``None`` starts a local instance.
         workers: CPUs of the local instance.
+        fresh: delete each task's earlier results first (else a folder of another config is refused).
     """
     out = out.resolve()
+    for grid in grids:
+        prepare_results(out / grid.task, run_record(grid, methods), fresh=fresh)
     cells = [cell for grid in grids for cell in grid.cells]
     todo = [cell for cell in cells if not cell.done(out)]
     ran: list[Cell] = []
@@ -315,16 +244,12 @@ def split_overrides(overrides: Sequence[str]) -> tuple[list[str], dict[str, list
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="the tiny setting (tests, QUICK=1)")
-    parser.add_argument("--out", type=Path, default=None, help="results root (default results/, results/quick with --quick)")
-    parser.add_argument("--address", default=None, help="join this Ray cluster ('auto', HOST:PORT) instead of starting one")
-    parser.add_argument("overrides", nargs="*", help="ray.workers=4, tasks=[uav], lunarlander.protocol.max_steps=200")
-    return parser.parse_args(argv)
+    """The command line of ``dcsc sweep`` (:func:`dcsc_torchrl.cli.add_sweep_options`)."""
+    return add_sweep_options(Parser(description=__doc__.split("\n\n")[0])).parse_args(argv)
 
 
-def main(argv: Sequence[str] | None = None) -> SweepResult:
-    args = parse_args(argv)
+def sweep(args: argparse.Namespace) -> SweepResult:
+    """``dcsc sweep``: the configs checked, every cell not done yet run, every task gathered."""
     sweep_overrides, task_overrides = split_overrides(args.overrides)
     cfg = load_config(CONFIG, sweep_overrides, quick=args.quick)
     unknown = sorted({*cfg.tasks} - set(PRETRAIN)) + sorted({*cfg.methods} - set(METHODS))
@@ -333,10 +258,14 @@ def main(argv: Sequence[str] | None = None) -> SweepResult:
     grids = [task_grid(task, cfg, task_overrides[task], quick=args.quick) for task in cfg.tasks]
     out = args.out or Path("results/quick" if args.quick else "results")
     result = run_sweep(out, grids, tuple(cfg.methods), quick=args.quick, retries=cfg.ray.retries,
-                       address=args.address or cfg.ray.address, workers=cfg.ray.workers)
+                       address=args.address or cfg.ray.address, workers=cfg.ray.workers, fresh=args.fresh)
     print(f"{len(result.ran)} cells ran, {len(result.skipped)} were done already, {len(result.failed)} failed; "
-          f"results in {result.out}")
+          f"results in {result.out}", file=sys.stderr, flush=True)
     return result
+
+
+def main(argv: Sequence[str] | None = None) -> SweepResult:
+    return sweep(parse_args(argv))
 
 
 if __name__ == "__main__":
