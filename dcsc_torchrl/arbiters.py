@@ -163,3 +163,114 @@ class HULAArbiter(Arbiter):
         uncertainty = tensordict.get(self.uncertainty_key)
         check_finite(str(self.uncertainty_key), uncertainty)
         return (uncertainty <= self.threshold).to(ratio.dtype)
+
+
+def centred_fusion_weight(theta: torch.Tensor, ratio: torch.Tensor, gain: float) -> torch.Tensor:
+    """The centred form of Eq. 15: ``beta = sigmoid(theta + gain * (2 b_t - 1))``.
+
+    Equal confidences (``b_t = 1/2``) give ``sigmoid(theta)``, so at ``theta = 0`` both
+    partners get half the authority; a more confident machine always gets more authority
+    than a less confident one (``gain > 0``), and theta, a learnable offset, can hand the
+    majority to either side. ``d beta / d theta = beta (1 - beta)``, so Eq. 19 carries
+    over without its ``b_t`` factor.
+
+    Examples:
+        >>> centred_fusion_weight(torch.zeros(1), torch.tensor([0.5, 2 / 3]), gain=3.0)
+        tensor([0.5000, 0.7311])
+    """
+    return torch.sigmoid(theta + gain * (2.0 * ratio - 1.0))
+
+
+class CentredConfidenceArbiter(Arbiter):
+    """DC-SC's arbiter in centred form: ``beta = sigmoid(theta + gain * (2 b_t - 1))``.
+
+    Eq. 15 as printed, ``sigmoid(theta * b_t)``, keeps ``beta >= 1/2`` while
+    ``theta >= 0`` and, for ``theta < 0``, gives a *more* confident machine *less*
+    authority. This form keeps what the paper's text asks of the arbiter (authority
+    favours the more confident side) and lets the learned theta move authority either
+    way: equal confidences give ``sigmoid(theta)``, and ``gain`` says how much a
+    confidence gap counts (with the default 3, a side twice as confident as the other,
+    ``b_t = 2/3``, gets 73% of the authority at ``theta = 0``). theta is trained by the
+    same losses as :class:`ConfidenceArbiter` (:class:`~dcsc_torchrl.losses.ThetaLoss`,
+    TorchRL's ``DDPGLoss``); its gradient is Eq. 19 with ``b_t`` replaced by 1.
+
+    Args:
+        theta_init: initial value of every entry of theta (finite; 0: equal authority
+            at equal confidences).
+        dims: number of action dimensions.
+        gain: weight of the confidence gap, > 0 and finite.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> arbiter = CentredConfidenceArbiter(theta_init=0.0)
+        >>> td = TensorDict({"machine_confidence": torch.tensor([[0.2]]),
+        ...                  "human_confidence": torch.tensor([[0.6]])}, [1])
+        >>> arbiter(td)["beta"]
+        tensor([[0.1824]], grad_fn=<ExpandBackward0>)
+    """
+
+    def __init__(self, theta_init: float = 0.0, dims: int = 1, *, gain: float = 3.0, **kwargs) -> None:
+        super().__init__(dims, **kwargs)
+        if not math.isfinite(theta_init):
+            raise ValueError(f"theta_init must be finite, got {theta_init!r}")
+        check_in_range("gain", gain, 0.0, float("inf"), low_inclusive=False, high_inclusive=False)
+        self.gain = float(gain)
+        self.theta = nn.Parameter(torch.full((self.dims,), float(theta_init)))
+
+    def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+        return centred_fusion_weight(self.theta, ratio, self.gain)
+
+
+class ConstantArbiter(Arbiter):
+    """A fixed blend, ``beta = value`` whatever the confidences (the best-constant reference).
+
+    A sweep of constant betas over the validation scenarios is an oracle no real arbiter
+    has: it shows how well the two partners could do blended at the best fixed weight.
+
+    Args:
+        value: the machine's authority, in [0, 1].
+        dims: number of action dimensions.
+    """
+
+    def __init__(self, value: float, dims: int = 1, **kwargs) -> None:
+        super().__init__(dims, **kwargs)
+        check_in_range("value", value, 0.0, 1.0, low_inclusive=True, high_inclusive=True)
+        self.value = float(value)
+
+    def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+        return torch.full_like(ratio, self.value)
+
+
+class FrozenConfidenceArbiter(Arbiter):
+    """A learned arbiter fed constant confidences: the ablation "what the confidences add".
+
+    Reads nothing from the frame: ``b_m`` and ``b_h`` are held at fixed values (their
+    means over the collaboration runs), and ``arbiter``'s own theta (and its form)
+    decides beta from the constant ratio. Trained like any DC-SC arbiter.
+
+    Args:
+        arbiter: a :class:`ConfidenceArbiter` or :class:`CentredConfidenceArbiter`.
+        machine_confidence: the frozen ``b_m``, in [0, 1].
+        human_confidence: the frozen ``b_h``, in [0, 1].
+    """
+
+    def __init__(self, arbiter: Arbiter, machine_confidence: float, human_confidence: float) -> None:
+        super().__init__(arbiter.dims, in_keys=arbiter.in_keys, out_keys=arbiter.out_keys)
+        check_in_range("machine_confidence", machine_confidence, 0.0, 1.0, low_inclusive=True, high_inclusive=True)
+        check_in_range("human_confidence", human_confidence, 0.0, 1.0, low_inclusive=True, high_inclusive=True)
+        self.arbiter = arbiter
+        self.frozen = (float(machine_confidence), float(human_confidence))
+
+    @property
+    def theta(self) -> nn.Parameter:
+        return self.arbiter.theta
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        like = tensordict.get(self.in_keys[1])
+        b_m, b_h = (torch.full_like(like, value) for value in self.frozen)
+        ratio = confidence_ratio(b_m, b_h)
+        beta = self.arbiter.machine_share(ratio, tensordict).expand(*ratio.shape[:-1], self.dims)
+        ratio_key, beta_key = self.out_keys
+        tensordict.set(ratio_key, ratio)
+        tensordict.set(beta_key, beta)
+        return tensordict

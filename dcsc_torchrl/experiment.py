@@ -20,11 +20,12 @@ until every scenario of the batch is done.
 
 from __future__ import annotations
 
+import copy
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
@@ -37,26 +38,49 @@ from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
 from dcsc_torchrl.arbiters import (
     Arbiter,
+    CentredConfidenceArbiter,
     ConfidenceArbiter,
+    ConstantArbiter,
+    FrozenConfidenceArbiter,
     HULAArbiter,
     HumanOnlyArbiter,
     MachineOnlyArbiter,
 )
+from dcsc_torchrl.confidence import machine_confidence
 from dcsc_torchrl.humans import SimulatedOperator, SimulatedPilot
 from dcsc_torchrl.losses import ThetaLoss
-from dcsc_torchrl.machine import MCDropoutPolicy
+from dcsc_torchrl.machine import MCDropoutPolicy, calibrated_uncertainty_scale
 from dcsc_torchrl.policy import SharedPolicyModule
 from dcsc_torchrl.tasks import make_lunar_env, make_uav_env
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
 
-METHODS = ("machine", "operator", "hula", "dcsc")
+METHODS = ("machine", "operator", "hula", "dcsc", "dcsc_centred", "dcsc_frozen", "constant")
+"""Every method of the protocol. ``dcsc``: Eq. 15 as printed; ``dcsc_centred``: the centred
+arbiter; ``dcsc_frozen``: the default learned form fed its confidences' collaboration means
+(what the confidences add); ``constant``: a sweep of fixed betas (the best is an oracle)."""
+LEARNED_FORMS = {"dcsc": "paper", "dcsc_centred": "centred"}
+"""The learned arbiters and their form: each collaborates, then validates, learning online."""
 TRACE_KEYS = ("knowledge", "human_confidence", "machine_uncertainty", "machine_confidence",
               "confidence_ratio", "beta")
 ACTION_DIMS = {"lunarlander": 1, "uav": 3}
 
 
-def make_arbiter(method: str, task: str, *, theta_init: float, hula_threshold: float | None) -> Arbiter:
-    """The arbiter that makes ``method`` out of the common pipeline."""
+def make_arbiter(
+    method: str,
+    task: str,
+    *,
+    theta_init: float,
+    hula_threshold: float | None,
+    gain: float = 3.0,
+    constant_beta: float | None = None,
+) -> Arbiter:
+    """The arbiter that makes ``method`` out of the common pipeline.
+
+    ``dcsc`` is :class:`ConfidenceArbiter` (Eq. 15), ``dcsc_centred``
+    :class:`CentredConfidenceArbiter` (with ``gain``), ``constant`` a
+    :class:`ConstantArbiter` of ``constant_beta``. ``dcsc_frozen`` is built by the
+    protocol from a learned arbiter (:class:`FrozenConfidenceArbiter`).
+    """
     dims = ACTION_DIMS[task]
     if method == "machine":
         return MachineOnlyArbiter(dims)
@@ -68,7 +92,13 @@ def make_arbiter(method: str, task: str, *, theta_init: float, hula_threshold: f
         return HULAArbiter(hula_threshold, dims)
     if method == "dcsc":
         return ConfidenceArbiter(theta_init, dims)
-    raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if method == "dcsc_centred":
+        return CentredConfidenceArbiter(theta_init, dims, gain=gain)
+    if method == "constant":
+        if constant_beta is None:
+            raise ValueError("the constant arbiter needs constant_beta")
+        return ConstantArbiter(constant_beta, dims)
+    raise ValueError(f"method must be one of {METHODS[:-2] + ('constant',)}, got {method!r}")
 
 
 def make_operator(task: str, preset: str) -> SimulatedPilot | SimulatedOperator:
@@ -82,10 +112,9 @@ def make_operator(task: str, preset: str) -> SimulatedPilot | SimulatedOperator:
 
 def make_env(task: str, cfg: DictConfig, preset: str, scenario_seeds: list[int], operator_seed: int) -> TransformedEnv:
     """A batch of scenarios (one per env) with the operator and its confidence as transforms."""
-    conf = cfg.confidence
     transforms = [
         HumanOperatorTransform(make_operator(task, preset), seed=operator_seed),
-        HumanConfidenceTransform(conf.p, conf.eta, conf.delta1, conf.K, conf.t_d, conf.k0, conf.mode),
+        HumanConfidenceTransform(**cfg.human),
     ]
     if task == "lunarlander":
         env = make_lunar_env(len(scenario_seeds), random_pad=True, max_steps=cfg.protocol.max_steps,
@@ -102,7 +131,8 @@ class OnlineLearner:
     Discrete (LunarLander): :class:`ThetaLoss` — ``-sum_a pi_theta Q`` + the Q critic's TD
     loss. Continuous (UAV): TorchRL's ``DDPGLoss`` with the shared policy as actor and only
     theta trainable (its actor loss has the gradient of Eq. 19), the critic's TD loss
-    keeping it adapting. Targets are soft-updated with ``SoftUpdate``.
+    keeping it adapting. Targets are soft-updated with ``SoftUpdate``. Each collected batch
+    gives ``updates_per_batch`` gradient steps of both (every step on the whole batch).
 
     Args:
         policy: the DC-SC shared policy (its arbiter holds theta).
@@ -111,13 +141,18 @@ class OnlineLearner:
         critic_lr: beta of Algorithm 1 (line 12).
         gamma: discount factor.
         tau: soft-update rate of the target critic.
+        updates_per_batch: gradient steps per collected batch (>= 1).
     """
 
     def __init__(
         self, policy: SharedPolicyModule, critic: torch.nn.Module, *, theta_lr: float, critic_lr: float,
-        gamma: float, tau: float,
+        gamma: float, tau: float, updates_per_batch: int = 1,
     ) -> None:
+        if int(updates_per_batch) != updates_per_batch or updates_per_batch < 1:
+            raise ValueError(f"updates_per_batch must be an integer >= 1, got {updates_per_batch!r}")
         self.policy = policy
+        self.critic = critic
+        self.updates_per_batch = int(updates_per_batch)
         theta = policy["arbiter"].theta
         if policy.discrete:
             self.loss = ThetaLoss(policy, TensorDictModule(critic, ["observation"], ["action_value"]), gamma=gamma)
@@ -131,39 +166,97 @@ class OnlineLearner:
         self.critic_optim = torch.optim.Adam(critic_params, lr=critic_lr)
         self.history: list[dict[str, Any]] = []
 
+    def critic_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        """The critic's TD loss on a flat batch (Algorithm 1, lines 9-12)."""
+        if self.policy.discrete:
+            return self.loss.loss_qvalue(batch)[0]
+        return self.loss.loss_value(batch)[0]
+
+    def theta_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        """The loss whose theta-gradient is minus Eq. 19, on a flat batch."""
+        if self.policy.discrete:
+            return self.loss.loss_theta(batch)[0]
+        return self.loss.loss_actor(batch)[0]
+
+    def warm_up(self, frames: TensorDictBase, *, updates: int, batch_size: int, seed: int) -> float:
+        """Fits the critic alone on recorded transitions (the operator-alone runs), theta untouched.
+
+        The pretrained critic has never seen the task's target (the LunarLander machine is
+        pretrained on the centred pad); ``updates`` TD steps on minibatches of
+        ``batch_size`` frames drawn (with a generator seeded by ``seed``) from ``frames``
+        give it a start on the operator's transitions before theta learns from it.
+        Returns the last minibatch loss (``nan`` with no updates).
+        """
+        frames = frames.reshape(-1)
+        generator = torch.Generator().manual_seed(seed)
+        loss = torch.tensor(float("nan"))
+        for _ in range(updates):
+            index = torch.randint(frames.shape[0], (min(batch_size, frames.shape[0]),), generator=generator)
+            loss = self.critic_loss(frames[index])
+            self.critic_optim.zero_grad()
+            loss.backward()
+            self.critic_optim.step()
+            self.targets.step()
+        return loss.item()
+
+    def action_gap(self, frames: TensorDictBase) -> torch.Tensor:
+        """``Q(s, a_machine) - Q(s, a_operator)`` per frame under the current critic.
+
+        Discrete: the machine's action is its most likely key. Positive where the critic
+        prefers the machine's action: how the protocol checks that low-``b_m`` frames are
+        frames where the machine's action is worse.
+        """
+        frames = frames.reshape(-1)
+        with torch.no_grad():
+            if self.policy.discrete:
+                q = self.critic(frames["observation"])
+                machine = q.gather(-1, frames["machine_probs"].argmax(-1, keepdim=True))
+                human = q.gather(-1, frames["human_action"].argmax(-1, keepdim=True))
+                return (machine - human).reshape(-1)
+            obs = frames["observation"]
+            gap = self.critic(obs, frames["machine_action"]) - self.critic(obs, frames["human_action"].float())
+            return gap.reshape(-1)
+
     def __call__(self, batch: TensorDictBase) -> None:
         batch = batch.reshape(-1)
-        if self.policy.discrete:
-            out = self.loss(batch)
-            loss_theta, loss_critic = out["loss_theta"], out["loss_qvalue"]
-        else:
-            loss_critic, _ = self.loss.loss_value(batch)
-            loss_theta, _ = self.loss.loss_actor(batch)
-        self.critic_optim.zero_grad()
-        self.theta_optim.zero_grad()
-        (loss_theta + loss_critic).backward()
         theta = self.policy["arbiter"].theta
-        grad = theta.grad.detach().clone()
-        self.critic_optim.step()
-        self.theta_optim.step()
-        self.targets.step()
-        self.history.append({
-            "update": len(self.history) + 1,
-            "theta": theta.detach().tolist(),
-            "theta_grad": grad.tolist(),
-            "loss_theta": loss_theta.item(),
-            "loss_critic": loss_critic.item(),
-        })
+        for _ in range(self.updates_per_batch):
+            loss_critic = self.critic_loss(batch)
+            loss_theta = self.theta_loss(batch)
+            self.critic_optim.zero_grad()
+            self.theta_optim.zero_grad()
+            (loss_theta + loss_critic).backward()
+            grad = theta.grad.detach().clone()
+            self.critic_optim.step()
+            self.theta_optim.step()
+            self.targets.step()
+            self.history.append({
+                "update": len(self.history) + 1,
+                "theta": theta.detach().tolist(),
+                "theta_grad": grad.tolist(),
+                "loss_theta": loss_theta.item(),
+                "loss_critic": loss_critic.item(),
+            })
 
 
 @dataclass
 class EpisodeBatch:
     """What :func:`run_scenarios` returns: one row per scenario, the trace of the first,
-    and the machine's uncertainty over every recorded frame."""
+    and every recorded frame (the first episode of each env; only the keys the protocol
+    reads afterwards)."""
 
     rows: list[dict[str, Any]]
     trace: list[dict[str, Any]] = field(default_factory=list)
-    uncertainty: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    frames: TensorDictBase | None = None
+
+    @property
+    def uncertainty(self) -> torch.Tensor:
+        """The machine's uncertainty ``c_t`` over the recorded frames."""
+        return self.frames["machine_uncertainty"].reshape(-1)
+
+
+FRAME_KEYS = ("observation", "action", "machine_probs", "machine_action", "machine_uncertainty",
+              "machine_confidence", "human_confidence", "human_action", "confidence_ratio", "beta")
 
 
 def _trace_rows(frames: TensorDictBase, task: str) -> list[dict[str, Any]]:
@@ -171,7 +264,7 @@ def _trace_rows(frames: TensorDictBase, task: str) -> list[dict[str, Any]]:
     rows = []
     for step in range(frames.shape[0]):
         frame = frames[step]
-        row = {"step": step + 1, "reward": frame["next", "reward"].item()}
+        row = {"step": step + 1, "reward": frame["next", "reward"].item(), "human_rt": frame["human_rt"].item()}
         row.update({key: frame[key].item() for key in TRACE_KEYS if key != "beta"})
         if task == "lunarlander":
             row["beta"] = frame["beta"].item()
@@ -214,13 +307,14 @@ def run_scenarios(
     active = torch.ones(n_envs, dtype=torch.bool)
     rows: list[dict[str, Any] | None] = [None] * n_envs
     traced: list[TensorDictBase] = []
-    uncertainty: list[torch.Tensor] = []
+    frames: list[TensorDictBase] = []
     extra = ["success", "path_length"] if task == "uav" else ["success"]
+    keys = [*FRAME_KEYS, *(("next", key) for key in (*FRAME_KEYS, "reward", "done", "terminated"))]
     for batch in collector:
         done = batch["next", "done"].squeeze(-1)
         before_done = (done.long().cumsum(-1) - done.long()) == 0
         in_first = active.unsqueeze(-1) & before_done
-        uncertainty.append(batch["machine_uncertainty"][in_first].reshape(-1))
+        frames.append(batch.select(*keys, strict=False)[in_first])
         if trace and in_first[0].any():
             traced.append(batch[0][in_first[0]])
         for i in (active & done.any(-1)).nonzero().reshape(-1).tolist():
@@ -235,26 +329,36 @@ def run_scenarios(
             break
     collector.shutdown()
     trace_rows = _trace_rows(torch.cat(traced), task) if traced else []
-    return EpisodeBatch(rows, trace_rows, torch.cat(uncertainty).numpy())
+    return EpisodeBatch(rows, trace_rows, torch.cat(frames))
 
 
 def build_policy(
-    machine_net: torch.nn.Module, arbiter: Arbiter, task: str, cfg: DictConfig, action_spec: TensorSpec
+    machine_net: torch.nn.Module,
+    arbiter: Arbiter,
+    task: str,
+    cfg: DictConfig,
+    action_spec: TensorSpec,
+    *,
+    uncertainty_scale: float = 1.0,
 ) -> SharedPolicyModule:
     """The shared policy of Eq. 14 over the frozen pretrained machine."""
     machine = MCDropoutPolicy(
         machine_net,
         output="probs" if task == "lunarlander" else "action",
-        num_samples=cfg.machine.mc_samples,
-        lam=cfg.confidence.lam,
-        delta2=cfg.confidence.delta2,
+        num_samples=cfg.machine.num_samples,
+        lam=cfg.machine.lam,
+        delta2=cfg.machine.delta2,
         tau_inv=cfg.machine.tau_inv,
+        uncertainty_scale=uncertainty_scale,
     )
     return SharedPolicyModule(machine, arbiter, action_spec)
 
 
+PHASES = ("operator_alone", "collaboration", "validation")
+
+
 def scenario_seeds(phase: str, cfg: DictConfig) -> list[int]:
-    """The scenario seeds of a protocol phase: validation 0..49 (DESIGN §5), the rest apart."""
+    """The scenario seeds of a protocol phase: validation 0..N-1, the others in ranges of their own."""
     protocol = cfg.protocol
     if phase == "validation":
         return list(range(protocol.validation_scenarios))
@@ -265,14 +369,56 @@ def scenario_seeds(phase: str, cfg: DictConfig) -> list[int]:
     raise ValueError(f"unknown phase {phase!r}")
 
 
+def run_seed(seed: int, pretrain_seed: int, phase: str, method: str) -> int:
+    """The torch seed of one (phase, method) run of a cell: a stable hash of the names.
+
+    So a run's rows depend neither on which cells ran before nor on which other methods
+    run in the cell.
+    """
+    return zlib.crc32(f"{seed}/{pretrain_seed}/{phase}/{method}".encode())
+
+
+def operator_seed(seed: int, pretrain_seed: int, first_scenario: int) -> int:
+    """The operator's seed for a batch of scenarios starting at ``first_scenario``.
+
+    The same for every method of a cell: each method meets the same person on the same
+    scenario (the operator's streams are per env, see :class:`EnvStreams`).
+    """
+    return seed + pretrain_seed * 7919 + first_scenario
+
+
 @dataclass
 class CellResult:
-    """One cell's output: episode rows (every phase), traces of scenario 0, theta's updates."""
+    """One cell's output: episode rows (every phase), traces of scenario 0, theta's updates,
+    and the calibration (HULA's threshold, the uncertainty unit, what b_m says)."""
 
     episodes: list[dict[str, Any]]
     traces: list[dict[str, Any]]
     theta: list[dict[str, Any]]
     hula_threshold: float
+    calibration: dict[str, Any] = field(default_factory=dict)
+
+
+def confidence_signal(uncertainty_scale: float, frames: TensorDictBase, gap: torch.Tensor,
+                      lam: float, delta2: float) -> dict[str, float]:
+    """How b_m spreads on the calibration frames, and whether low b_m marks worse machine actions.
+
+    ``gap`` is :meth:`OnlineLearner.action_gap` on ``frames``: the critic's
+    ``Q(s, a_machine) - Q(s, a_operator)``. Returns the 10/50/90th percentiles of b_m,
+    the mean gap on the quarter of frames with the lowest and the highest b_m, and their
+    rank correlation (Spearman).
+    """
+    b_m = machine_confidence(frames["machine_uncertainty"].reshape(-1).double() / uncertainty_scale, lam, delta2)
+    low, high = torch.quantile(b_m, 0.25), torch.quantile(b_m, 0.75)
+    ranks = torch.stack([b_m.argsort().argsort(), gap.double().argsort().argsort()]).double()
+    spearman = torch.corrcoef(ranks)[0, 1].item() if len(b_m) > 1 else float("nan")
+    return {
+        "uncertainty_scale": uncertainty_scale,
+        **{f"b_m_p{q}": torch.quantile(b_m, q / 100).item() for q in (10, 50, 90)},
+        "gap_low_b_m": gap[b_m <= low].mean().item(),
+        "gap_high_b_m": gap[b_m >= high].mean().item(),
+        "spearman_b_m_gap": spearman,
+    }
 
 
 def run_cell(
@@ -286,71 +432,122 @@ def run_cell(
     methods: tuple[str, ...] = METHODS,
     trace: bool = False,
 ) -> CellResult:
-    """The protocol of DESIGN §5 for one (task, operator preset, pretraining seed).
+    """The protocol for one (task, operator preset, pretraining seed): calibrate, collaborate, validate.
 
-    1. the operator alone on ``protocol.operator_runs`` scenarios (calibrates HULA's
-       threshold: the 90th percentile of the machine's uncertainty seen, unless
-       ``arbiter.hula_threshold`` is set);
-    2. DC-SC collaborating on ``protocol.collaboration_runs`` scenarios, theta and the
-       critic learning online (Algorithm 1);
-    3. every method on the validation scenarios (seeds 0..49, groups of
-       ``protocol.group_size``); DC-SC keeps learning online.
+    1. **calibrate** — the operator alone on ``protocol.operator_runs`` scenarios:
+       HULA's threshold (the 90th percentile of the machine's uncertainty seen, unless
+       ``arbiter.hula_threshold`` is set), the unit of the machine's uncertainty
+       (:func:`calibrated_uncertainty_scale`, when ``machine.calibrate``) and the critic's
+       warm-up on the operator's transitions (``online.critic_warmup_updates``);
+    2. **collaborate** — each learned arbiter (``dcsc``, ``dcsc_centred``) on
+       ``protocol.collaboration_runs`` scenarios, theta and its own copy of the critic
+       learning online (Algorithm 1);
+    3. **validate** — every method on the validation scenarios (seeds 0..N-1, groups of
+       ``protocol.group_size``); the learned arbiters keep learning online; ``constant``
+       runs once per beta of ``arbiter.constant_betas``; ``dcsc_frozen`` starts from the
+       ``arbiter.form`` arbiter's theta after collaboration, its confidences frozen at
+       their collaboration means.
 
-    The cell seeds torch itself (from ``cfg.seed``, the pretraining seed and the
-    phase), so its rows do not depend on which cells ran before it.
+    Every run seeds torch with :func:`run_seed`, so its rows do not depend on which
+    cells or methods ran before it.
     """
-    import copy
-
     base = {"task": task, "operator": preset, "pretrain_seed": pretrain_seed}
+    seed, rollout = int(cfg.seed), int(cfg.online.rollout_length)
     spec_env = make_env(task, cfg, preset, [0], operator_seed=0)
     action_spec = spec_env.full_action_spec["action"]
     spec_env.close()
-    rollout = cfg.online.rollout_length
-    episodes: list[dict[str, Any]] = []
-    traces: list[dict[str, Any]] = []
 
-    def play(
-        phase: str,
-        method: str,
-        policy: SharedPolicyModule,
-        update: OnlineLearner | None = None,
-        record_trace: bool = False,
-    ) -> EpisodeBatch:
+    def play(phase: str, method: str, policy: SharedPolicyModule, update: OnlineLearner | None = None,
+             record_trace: bool = False) -> tuple[list[int], EpisodeBatch]:
         seeds = scenario_seeds(phase, cfg)
-        torch.manual_seed(int(cfg.seed) * 1_000_003 + pretrain_seed * 1009 + METHODS.index(method) * 17
-                          + ("operator_alone", "collaboration", "validation").index(phase))
-        env = make_env(task, cfg, preset, seeds, operator_seed=int(cfg.seed) + pretrain_seed * 7919 + seeds[0])
-        result = run_scenarios(env, policy, task, rollout_length=rollout, update=update, trace=record_trace)
+        torch.manual_seed(run_seed(seed, pretrain_seed, phase, method))
+        env = make_env(task, cfg, preset, seeds, operator_seed=operator_seed(seed, pretrain_seed, seeds[0]))
+        result = run_scenarios(env, policy, task, rollout_length=rollout, update=update,
+                               trace=record_trace and trace)
         env.close()
-        for index, (seed, row) in enumerate(zip(seeds, result.rows, strict=True)):
-            group = index // cfg.protocol.group_size + 1 if phase == "validation" else 0
-            episodes.append({**base, "method": method, "phase": phase, "group": group, "seed": seed,
-                             "path_length": float("nan"), **row, "hula_threshold": threshold})
-        traces.extend({**base, "method": method, "phase": phase, "seed": seeds[0], **r} for r in result.trace)
-        return result
+        return seeds, result
 
-    def policy_for(method: str, threshold: float | None = None) -> SharedPolicyModule:
-        arbiter = make_arbiter(method, task, theta_init=cfg.arbiter.theta_init, hula_threshold=threshold)
-        return build_policy(machine_net, arbiter, task, cfg, action_spec)
+    def rows(phase: str, method: str, seeds: list[int], result: EpisodeBatch, **extra: Any) -> list[dict[str, Any]]:
+        return [{**base, "method": method, "phase": phase,
+                 "group": index // cfg.protocol.group_size + 1 if phase == "validation" else 0,
+                 "seed": s, "path_length": float("nan"), **row, "hula_threshold": threshold, **extra}
+                for index, (s, row) in enumerate(zip(seeds, result.rows, strict=True))]
 
+    def traced(phase: str, method: str, seeds: list[int], result: EpisodeBatch) -> list[dict[str, Any]]:
+        return [{**base, "method": method, "phase": phase, "seed": seeds[0], **r} for r in result.trace]
+
+    def policy_for(method: str, arbiter: Arbiter | None = None, **kwargs: Any) -> SharedPolicyModule:
+        if arbiter is None:
+            form = cfg.arbiter[LEARNED_FORMS.get(method, "paper")]
+            arbiter = make_arbiter(method, task, theta_init=form.theta_init, gain=cfg.arbiter.centred.gain,
+                                   hula_threshold=threshold, **kwargs)
+        return build_policy(machine_net, arbiter, task, cfg, action_spec, uncertainty_scale=scale)
+
+    def learner_for(policy: SharedPolicyModule) -> OnlineLearner:
+        online = cfg.online
+        learner = OnlineLearner(policy, copy.deepcopy(warm_critic), theta_lr=online.theta_lr,
+                                critic_lr=online.critic_lr, gamma=online.gamma, tau=online.tau,
+                                updates_per_batch=online.updates_per_batch)
+        learner.critic_optim.load_state_dict(warm_optim)
+        return learner
+
+    # 1. calibrate: everything the other phases need is known before any row is written
+    threshold, scale = None, 1.0
+    alone_seeds, alone = play("operator_alone", "operator", policy_for("operator"))
     threshold = cfg.arbiter.hula_threshold
-    alone = play("operator_alone", "operator", policy_for("operator"))
     if threshold is None:
-        threshold = float(np.quantile(alone.uncertainty, 0.9))
-        for row in episodes:
-            row["hula_threshold"] = threshold
+        threshold = float(torch.quantile(alone.uncertainty.double(), 0.9))
+    if cfg.machine.calibrate:
+        scale = calibrated_uncertainty_scale(alone.uncertainty, cfg.machine.lam, cfg.machine.delta2)
+    warm = OnlineLearner(policy_for("dcsc"), copy.deepcopy(critic_net), theta_lr=0.0,
+                         critic_lr=cfg.online.critic_lr, gamma=cfg.online.gamma, tau=cfg.online.tau)
+    warm.warm_up(alone.frames, updates=cfg.online.critic_warmup_updates, batch_size=cfg.online.warmup_batch_size,
+                 seed=run_seed(seed, pretrain_seed, "operator_alone", "critic"))
+    warm_critic, warm_optim = warm.critic, warm.critic_optim.state_dict()
+    calibration = {**base, "hula_threshold": threshold,
+                   **confidence_signal(scale, alone.frames, warm.action_gap(alone.frames),
+                                       cfg.machine.lam, cfg.machine.delta2)}
+    episodes = rows("operator_alone", "operator", alone_seeds, alone)
+    traces: list[dict[str, Any]] = []
+    theta: list[dict[str, Any]] = []
 
-    dcsc = policy_for("dcsc")
-    learner = OnlineLearner(dcsc, copy.deepcopy(critic_net), theta_lr=cfg.online.theta_lr,
-                            critic_lr=cfg.online.critic_lr, gamma=cfg.online.gamma, tau=cfg.online.tau)
-    if "dcsc" in methods:
-        play("collaboration", "dcsc", dcsc, update=learner)
-    collab_updates = len(learner.history)
+    # 2. collaborate: each learned arbiter with its own theta and critic
+    learners: dict[str, OnlineLearner] = {}
+    means: dict[str, tuple[float, float]] = {}
+    needed = {m for m in methods if m in LEARNED_FORMS}
+    if "dcsc_frozen" in methods:
+        needed.add(next(m for m, form in LEARNED_FORMS.items() if form == cfg.arbiter.form))
+    for method in sorted(needed, key=METHODS.index):
+        learners[method] = learner_for(policy_for(method))
+        seeds, result = play("collaboration", method, learners[method].policy, update=learners[method])
+        episodes += rows("collaboration", method, seeds, result)
+        frames = result.frames
+        means[method] = (frames["machine_confidence"].mean().item(), frames["human_confidence"].mean().item())
+    collaboration_updates = {method: len(learner.history) for method, learner in learners.items()}
+    frozen_learner = None
+    if "dcsc_frozen" in methods:
+        source = next(m for m, form in LEARNED_FORMS.items() if form == cfg.arbiter.form)
+        arbiter = FrozenConfidenceArbiter(copy.deepcopy(learners[source].policy["arbiter"]), *means[source])
+        frozen_learner = learner_for(policy_for("dcsc_frozen", arbiter))
+        frozen_learner.critic.load_state_dict(learners[source].critic.state_dict())
+
+    # 3. validate every method
     for method in methods:
-        if method == "dcsc":
-            play("validation", "dcsc", dcsc, update=learner, record_trace=trace)
+        if method in LEARNED_FORMS or method == "dcsc_frozen":
+            learner = frozen_learner if method == "dcsc_frozen" else learners[method]
+            seeds, result = play("validation", method, learner.policy, update=learner, record_trace=True)
+            episodes += rows("validation", method, seeds, result)
+            traces += traced("validation", method, seeds, result)
+        elif method == "constant":
+            for beta in cfg.arbiter.constant_betas:
+                seeds, result = play("validation", f"constant/{beta}", policy_for("constant", constant_beta=beta))
+                episodes += rows("validation", "constant", seeds, result, constant_beta=float(beta))
         else:
-            play("validation", method, policy_for(method, threshold), record_trace=trace)
-    theta = [{**base, "phase": "collaboration" if h["update"] <= collab_updates else "validation", **h}
-             for h in learner.history]
-    return CellResult(episodes, traces, theta, threshold)
+            seeds, result = play("validation", method, policy_for(method), record_trace=True)
+            episodes += rows("validation", method, seeds, result)
+            traces += traced("validation", method, seeds, result)
+    for method, learner in [*learners.items(), *([("dcsc_frozen", frozen_learner)] if frozen_learner else [])]:
+        split = collaboration_updates.get(method, 0)
+        theta += [{**base, "method": method, "phase": "collaboration" if h["update"] <= split else "validation", **h}
+                  for h in learner.history]
+    return CellResult(episodes, traces, theta, threshold, calibration)

@@ -73,6 +73,13 @@ class MCDropoutPolicy(TensorDictModuleBase):
         lam: lambda of Eq. 11, in (0, 1).
         delta2: delta_2 of Eq. 12, > 1.
         tau_inv: the observation noise tau^-1 of Eq. 10, >= 0.
+        uncertainty_scale: the unit in which Eq. 13 reads the uncertainty,
+            ``b_m = b_m(c_t / uncertainty_scale)`` (> 0; 1: as printed). Eq. 11's tolerance
+            C is dimensionless with mean ``1 / ln(1/lambda)`` (about 2 for lambda = 0.6),
+            while a small dropout rate gives variances of order 1e-4: read raw, ``b_m`` is
+            about 1 on every frame. :func:`calibrated_uncertainty_scale` picks the unit
+            from frames seen (the experiments: the operator-alone runs, as HULA's
+            threshold is). ``machine_uncertainty`` is written raw either way.
         in_keys: the observation key(s) fed to ``network``.
         out_keys: where to write mean, uncertainty and confidence; defaults to
             ``["machine_probs" | "machine_action", "machine_uncertainty",
@@ -98,6 +105,7 @@ class MCDropoutPolicy(TensorDictModuleBase):
         lam: float = 0.6,
         delta2: float = 1.05,
         tau_inv: float = 0.0,
+        uncertainty_scale: float = 1.0,
         in_keys: Sequence[NestedKey] = ("observation",),
         out_keys: Sequence[NestedKey] | None = None,
     ) -> None:
@@ -109,6 +117,8 @@ class MCDropoutPolicy(TensorDictModuleBase):
         check_in_range("lam", lam, 0.0, 1.0, low_inclusive=False, high_inclusive=False)
         check_in_range("delta2", delta2, 1.0, float("inf"), low_inclusive=False, high_inclusive=False)
         check_in_range("tau_inv", tau_inv, 0.0, float("inf"), low_inclusive=True, high_inclusive=False)
+        check_in_range("uncertainty_scale", uncertainty_scale, 0.0, float("inf"), low_inclusive=False,
+                       high_inclusive=False)
         if not dropout_layers(network):
             raise ValueError(
                 "network has no dropout layer: its MC-dropout uncertainty would always be 0; "
@@ -120,6 +130,7 @@ class MCDropoutPolicy(TensorDictModuleBase):
         self.lam = lam
         self.delta2 = delta2
         self.tau_inv = tau_inv
+        self.uncertainty_scale = float(uncertainty_scale)
         self.in_keys = list(in_keys)
         self.out_keys = list(out_keys) if out_keys is not None else list(_OUT_KEYS[output])
         if len(self.out_keys) != 3:
@@ -143,9 +154,52 @@ class MCDropoutPolicy(TensorDictModuleBase):
         for key, value in zip(self.in_keys, inputs, strict=True):
             check_finite(str(key), value)
         mean, uncertainty = mc_dropout_uncertainty(self.sample(*inputs), tau_inv=self.tau_inv)
-        confidence = machine_confidence(uncertainty, self.lam, self.delta2)
+        confidence = machine_confidence(uncertainty / self.uncertainty_scale, self.lam, self.delta2)
         mean_key, uncertainty_key, confidence_key = self.out_keys
         tensordict.set(mean_key, mean)
         tensordict.set(uncertainty_key, uncertainty)
         tensordict.set(confidence_key, confidence)
         return tensordict
+
+
+def calibrated_uncertainty_scale(
+    uncertainty: torch.Tensor, lam: float, delta2: float, *, quantile: float = 0.5
+) -> float:
+    """The ``uncertainty_scale`` at which the ``quantile`` of ``uncertainty`` gets ``b_m = 1/2``.
+
+    ``b_m`` (Eq. 13) falls from 1 at ``c = 0`` to 0; with this unit the frames seen
+    spread over its range: half of them (for the median) above ``b_m = 1/2``, half
+    below. The ``c`` of ``b_m(c) = 1/2`` is found by bisection (``b_m`` is strictly
+    decreasing, Property 3).
+
+    Args:
+        uncertainty: machine uncertainties ``c_t`` seen (any shape, >= 0, some > 0).
+        lam: lambda of Eq. 11.
+        delta2: delta_2 of Eq. 12.
+        quantile: which quantile of ``uncertainty`` maps to ``b_m = 1/2``, in (0, 1).
+
+    Examples:
+        >>> c = torch.tensor([1e-4, 2e-4, 3e-4])
+        >>> scale = calibrated_uncertainty_scale(c, lam=0.6, delta2=1.05)
+        >>> round(machine_confidence(torch.tensor(2e-4 / scale), 0.6, 1.05).item(), 4)
+        0.5
+    """
+    check_in_range("quantile", quantile, 0.0, 1.0, low_inclusive=False, high_inclusive=False)
+    values = torch.as_tensor(uncertainty, dtype=torch.float64).reshape(-1)
+    check_finite("uncertainty", values)
+    reference = float(torch.quantile(values, quantile))
+    if not reference > 0:
+        raise ValueError(
+            f"the {quantile} quantile of the machine's uncertainty is {reference}: the machine "
+            "is certain on those frames, there is no scale to calibrate"
+        )
+    low, high = 0.0, 1.0
+    while machine_confidence(torch.tensor(high, dtype=torch.float64), lam, delta2) > 0.5:
+        high *= 2.0
+    for _ in range(60):
+        middle = 0.5 * (low + high)
+        if machine_confidence(torch.tensor(middle, dtype=torch.float64), lam, delta2) > 0.5:
+            low = middle
+        else:
+            high = middle
+    return reference / (0.5 * (low + high))

@@ -15,6 +15,13 @@ N_KEYS = 4
 """TargetLunarLander's keys: 0 no-op, 1 left engine, 2 main engine, 3 right engine."""
 
 
+OBSERVATION_RATES = ((0, 2, 0.5), (1, 3, 1.125), (4, 5, 2.5))
+"""(position index, velocity index, rate): ``d obs[position] / dt = rate * obs[velocity]``
+per second in gymnasium's LunarLander units (x: ``vx (W/2) / FPS`` against ``x / (W/2)``
+with W/2 = 10 m gives 50 / 10 / 10 = 0.5; y: 50 / 6.67 / 6.67 = 1.125; the angle: the
+angular velocity is reported as ``20 omega / FPS``, so 50 / 20 = 2.5)."""
+
+
 class SimulatedPilot(SimulatedHuman):
     """The paper's LunarLander operator (§6.1: "the human has accurate knowledge of the landing target").
 
@@ -53,6 +60,15 @@ class SimulatedPilot(SimulatedHuman):
         observations = tensordict.get(self.observation_key).detach().cpu().numpy()
         keys = [target_heuristic(obs) for obs in observations]
         return torch.tensor(keys, dtype=torch.int64, device=tensordict.device)
+
+    def anticipate(self, perceived: TensorDictBase, delay: torch.Tensor) -> TensorDictBase:
+        """A constant-velocity guess of the present: the lander's x, y and tilt carried
+        forward ``delay`` seconds at the velocities seen (:data:`OBSERVATION_RATES`);
+        the velocities themselves (and gravity, thrust) are not predicted."""
+        obs = perceived.get(self.observation_key).clone()
+        for position, velocity, rate in OBSERVATION_RATES:
+            obs[..., position] += rate * obs[..., velocity] * delay.to(obs.dtype)
+        return perceived.clone(False).set(self.observation_key, obs)
 
     def workload(self, tensordict: TensorDictBase) -> torch.Tensor:
         obs = tensordict.get(self.observation_key)

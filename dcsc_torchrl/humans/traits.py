@@ -4,7 +4,10 @@ A simulated operator is a controller that knows the task (the pad's x, the obsta
 future positions) wrapped in the traits of a person:
 
 - a decision interval: it re-decides every ``decision_interval`` seconds and holds its
-  key between decisions;
+  key between decisions (a person changes keys a few times a second, not at 50 Hz);
+- a perception delay: at a decision it acts on what it saw one reaction time ago, i.e. on
+  the env's keys of ``round(RT / frame)`` frames before (``perceive_delayed``; an explicit
+  upper-bound preset, ``scripted``, acts on the current frame);
 - noise: at a decision it picks a random choice with probability ``eps``;
 - lag: at a decision it repeats its previous choice with probability ``lag``;
 - a reaction time (RT) per decision, drawn from an ex-Gaussian whose mean grows with the
@@ -30,7 +33,7 @@ from typing import Any, TypeVar
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-__all__ = ["PRESETS", "EnvStreams", "OperatorTraits", "SimulatedHuman", "ex_gaussian_rt"]
+__all__ = ["MAX_PERCEPTION_DELAY", "PRESETS", "EnvStreams", "OperatorTraits", "SimulatedHuman", "ex_gaussian_rt"]
 
 _Operator = TypeVar("_Operator", bound="SimulatedHuman")
 
@@ -56,9 +59,12 @@ class OperatorTraits:
         lapse_threshold: t_d, seconds, > 0: a decision slower than this is a lapse and
             delays the next decision by ``RT - t_d`` (defaults to the t_d of
             :class:`~dcsc_torchrl.transforms.HumanConfidenceTransform`).
+        perceive_delayed: act on the observation of one RT ago (a person) rather than on
+            the current one (a scripted controller). The delay is capped at
+            :data:`MAX_PERCEPTION_DELAY` seconds and at the frames since the episode began.
     """
 
-    decision_interval: float = 0.04
+    decision_interval: float = 0.2
     eps: float = 0.0
     lag: float = 0.0
     rt_mu: float = 0.35
@@ -66,6 +72,7 @@ class OperatorTraits:
     rt_tau: float = 0.1
     workload_gain: float = 0.3
     lapse_threshold: float = 1.0
+    perceive_delayed: bool = True
 
     def __post_init__(self) -> None:
         checks = {
@@ -84,15 +91,27 @@ class OperatorTraits:
                 raise ValueError(f"invalid operator trait {name}={value!r}")
 
 
+MAX_PERCEPTION_DELAY = 2.0
+"""Seconds: the longest perception delay a simulated person acts with (RTs past it act
+on the frame of 2 s before; with t_d = 1 s such a decision is a lapse anyway)."""
+
 PRESETS: dict[str, OperatorTraits] = {
     "expert": OperatorTraits(),
     "noisy": OperatorTraits(eps=0.25),
     "laggy": OperatorTraits(lag=0.8),
     "distracted": OperatorTraits(rt_mu=0.4, rt_sigma=0.1, rt_tau=0.2, workload_gain=0.5),
+    "scripted": OperatorTraits(decision_interval=0.04, perceive_delayed=False),
 }
 """Surrogate pilots in the spirit of the shared-autonomy literature (Reddy et al., 2018):
-a competent ``expert``, a ``noisy`` one (random keys), a ``laggy`` one (repeats itself)
-and a ``distracted`` one (a long RT tail: frequent lapses past t_d)."""
+a competent ``expert``, a ``noisy`` one (random keys with probability 0.25, Reddy et
+al.'s noisy pilot), a ``laggy`` one (repeats its previous choice with probability 0.8,
+Reddy et al.'s laggy pilot) and a ``distracted`` one (a long RT tail: frequent lapses
+past t_d). All four decide every 0.2 s (about the psychological refractory period
+between two successive responses, Pashler 1994) and act on what they saw one RT ago;
+their RT is ex-Gaussian with mu 0.35 s, sigma 0.05 s and tau 0.1 s (0.4 / 0.1 / 0.2 for
+``distracted``), the range of ex-Gaussian fits to choice reaction times (Ratcliff and
+Murdock 1976; Luce 1986). ``scripted`` is the undelayed controller re-deciding every
+frame pair: an explicit upper bound, not a person."""
 
 
 def ex_gaussian_rt(
@@ -185,11 +204,14 @@ class SimulatedHuman(ABC):
 
     Per frame, for every env of the batch (any batch shape): an env whose episode
     starts (``is_init``) drops its held choice and decides now; otherwise it decides
-    when its decision interval (plus any lapse) has passed. At a decision: with
-    probability ``lag`` it repeats its previous choice, else with probability ``eps`` it
-    picks a random one, else it takes its controller's (:meth:`plan`); it draws an RT
-    (:func:`ex_gaussian_rt`, workload from :meth:`workload`). Between decisions it holds
-    its choice and reports the last decision's RT with ``human_decided`` False.
+    when its decision interval (plus any lapse) has passed. At a decision it draws an RT
+    (:func:`ex_gaussian_rt`, workload of the current frame from :meth:`workload`); then,
+    with probability ``lag`` it repeats its previous choice, else with probability
+    ``eps`` it picks a random one, else it takes its controller's (:meth:`plan`) on what
+    it perceived: the env's ``in_keys`` of ``round(RT / frame_seconds)`` frames before
+    (when ``traits.perceive_delayed``; never before the episode's first frame, at most
+    :data:`MAX_PERCEPTION_DELAY` seconds). Between decisions it holds its choice and
+    reports the last decision's RT with ``human_decided`` False.
 
     Every random number comes from :class:`EnvStreams`, so an env behaves the same in
     any batch. Subclasses say what a choice is (``n_choices``, :meth:`action`), how the
@@ -217,6 +239,7 @@ class SimulatedHuman(ABC):
         self.frame_seconds = float(frame_seconds)
         self.streams: EnvStreams | None = None  # seeded by reset, or at the first call
         self._state: TensorDict | None = None
+        self._slot = 0  # where the current frame sits in the ring of past frames
 
     @classmethod
     def from_preset(cls: type[_Operator], name: str, **kwargs: Any) -> _Operator:
@@ -261,16 +284,51 @@ class SimulatedHuman(ABC):
     def action(self, choice: torch.Tensor) -> torch.Tensor:
         """``human_action`` of choices ``[N]``: ``[N, n]`` one-hot or ``[N, d]`` float."""
 
-    def _fresh_state(self, n_envs: int, device: torch.device | None) -> TensorDict:
+    @property
+    def memory_frames(self) -> int:
+        """Frames of the past it keeps to perceive with a delay (1: the current frame only)."""
+        if not self.traits.perceive_delayed:
+            return 1
+        return math.ceil(MAX_PERCEPTION_DELAY / self.frame_seconds) + 1
+
+    def _fresh_state(self, frame: TensorDictBase) -> TensorDict:
+        n_envs = frame.batch_size[0]
         return TensorDict(
             {
                 "choice": torch.zeros(n_envs, dtype=torch.int64),
                 "rt": torch.zeros(n_envs),
                 "wait": torch.zeros(n_envs, dtype=torch.int64),
+                "age": torch.zeros(n_envs, dtype=torch.int64),
+                "seen": frame.unsqueeze(1).expand(n_envs, self.memory_frames).clone(),
             },
             [n_envs],
-            device=device,
+            device=frame.device,
         )
+
+    def _remember(self, frame: TensorDictBase, restart: torch.Tensor) -> None:
+        """Stores the current frame in the ring of past frames; counts frames since reset."""
+        state = self._state
+        self._slot = (self._slot + 1) % self.memory_frames
+        state["seen"][:, self._slot] = frame
+        state["age"] = torch.where(restart, 0, state["age"] + 1)
+
+    def _perceived(self, rows: torch.Tensor, rt: torch.Tensor) -> TensorDictBase:
+        """What the deciding envs ``rows`` saw one RT ago, carried forward by :meth:`anticipate`."""
+        state = self._state
+        delay = torch.round(rt / self.frame_seconds).long()
+        delay = torch.minimum(delay.clamp_max(self.memory_frames - 1), state["age"][rows])
+        slots = (self._slot - delay) % self.memory_frames
+        return self.anticipate(state["seen"][rows, slots], delay.to(torch.float32) * self.frame_seconds)
+
+    def anticipate(self, perceived: TensorDictBase, delay: torch.Tensor) -> TensorDictBase:
+        """The person's guess of the present from a frame seen ``delay`` seconds ago (``[N]``).
+
+        People compensate part of their own delay with an internal model of what they
+        steer (Miall, Weir, Wolpert and Stein, 1993). The default guesses nothing: the
+        stale frame is taken for the present. Operators override it with their task's
+        forward model.
+        """
+        return perceived
 
     def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Decides (or holds) for every env; see the class docstring.
@@ -289,12 +347,15 @@ class SimulatedHuman(ABC):
         flat = tensordict.select(*self.in_keys, "is_init").reshape(-1)
         n_envs, device = flat.batch_size[0], tensordict.device
         restart = flat.get("is_init").reshape(n_envs)
+        frame = flat.select(*self.in_keys)
         if self.streams is None:
             self.reset(None)
         if self._state is None or self._state.batch_size[0] != n_envs:
-            self._state = self._fresh_state(n_envs, device)
+            self._state = self._fresh_state(frame)
+            self._slot = 0
             restart = torch.ones_like(restart)
         state = self._state
+        self._remember(frame, restart)
         u = self.streams.uniform(torch.Size([n_envs]), device)
 
         wait = torch.where(restart, 0, state["wait"])
@@ -302,12 +363,13 @@ class SimulatedHuman(ABC):
         choice = state["choice"].clone()
         if decide.any():
             rows = decide.nonzero().squeeze(-1)
-            deciding, u_rows = flat[rows], u[rows]
+            u_rows = u[rows]
+            rt = ex_gaussian_rt(self.traits, self.workload(frame[rows]), u_rows[:, 3:])
             random_choice = (u_rows[:, 2] * self.n_choices).long().clamp_max(self.n_choices - 1)
-            new = torch.where(u_rows[:, 1] < self.traits.eps, random_choice, self.plan(deciding))
+            planned = self.plan(self._perceived(rows, rt))
+            new = torch.where(u_rows[:, 1] < self.traits.eps, random_choice, planned)
             lagged = (u_rows[:, 0] < self.traits.lag) & ~restart[rows]
             choice[rows] = torch.where(lagged, choice[rows], new)
-            rt = ex_gaussian_rt(self.traits, self.workload(deciding), u_rows[:, 3:])
             state["rt"][rows] = rt
             excess = (rt - self.traits.lapse_threshold).clamp_min(0.0)
             lapse = torch.round(excess / self.frame_seconds).long()
