@@ -60,6 +60,7 @@ class Progress:
         print(f"{self.desc}: {self.n}/{self.total} {self.unit} ({elapsed:.0f} s){postfix}", file=self.file,
               flush=True)
         self._last = time.monotonic()
+        self._shown = self.n
 
     def update(self, n: int = 1) -> None:
         self.n += n
@@ -79,7 +80,7 @@ class Progress:
         self._closed = True
         if self._bar is not None:
             self._bar.close()
-        elif self.n < self.total:
+        elif self.n != self._shown:
             self._line()
 
     def __enter__(self) -> Progress:

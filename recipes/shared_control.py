@@ -263,6 +263,9 @@ def run(args: argparse.Namespace) -> Path:
     methods = tuple(check_names("method", args.methods or METHODS, METHODS))
     presets = check_names("operator preset", list(args.operators or cfg.operator.presets), list(PRESETS))
     grid = make_grid(args.task, cfg, presets, list(cfg.pretrain.seeds))
+    for seed in dict.fromkeys(cell.pretrain_seed for cell in grid.cells if not cell.done(Path(args.out))):
+        if checkpoint_path(cfg.pretrain.out_dir, seed).exists():  # a broken one is refused before any cell runs
+            load_checkpoint(checkpoint_path(cfg.pretrain.out_dir, seed), task=args.task)
     task_dir = Path(args.out) / args.task
     prepare_results(task_dir, run_record(grid, methods), fresh=args.fresh)
     torch.set_num_threads(cfg.threads)

@@ -1,35 +1,350 @@
-"""The ``dcsc`` command dispatches to the recipes and leaves their help to them."""
+"""The ``dcsc`` command as a newcomer meets it: help, one-line errors, exit codes, checkpoints, resume.
+
+Every bad input is a row of a table: the command line, the exit code, and what the one
+line on stderr must name (the key, the file). Commands run in-process through
+``dcsc_torchrl.cli.main``; subprocesses only where a fresh interpreter is the point (what
+``--help`` imports, Ctrl-C). No test pretrains: the machine of the runs below is a small
+untrained network written as a checkpoint.
+"""
 
 from __future__ import annotations
 
+import logging
+import os
+import signal
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
 import pytest
+import torch
 
-from dcsc_torchrl.cli import main
+from dcsc_torchrl import cli
+from dcsc_torchrl.checkpoint import (
+    CheckpointError,
+    checkpoint_path,
+    load_checkpoint,
+    save_checkpoint,
+    stale_temp_files,
+)
+from dcsc_torchrl.cli import build_parser, main
+from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
+from dcsc_torchrl.experiment import METHODS
+from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic
+from recipes import shared_control
+from recipes.shared_control import RECIPES, RUN_RECORD, prepare_results
+
+PRETRAIN_YAML = RECIPES / "pretrain_a2c_lunarlander.yaml"
+TINY = ["protocol.operator_runs=1", "protocol.collaboration_runs=1", "protocol.validation_scenarios=2",
+        "protocol.group_size=1", "protocol.max_steps=30"]
 
 
+def one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err
+    lines = err.splitlines()
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def machine_dir(tmp_path_factory) -> Path:
+    """``pretrain.out_dir`` holding seed 0's checkpoint: a small untrained LunarLander machine."""
+    out = tmp_path_factory.mktemp("pretrain")
+    torch.manual_seed(0)
+    network = {"hidden": [16, 16], "actor_dropout": 0.05}
+    actor = lunar_actor(network["hidden"], network["actor_dropout"])
+    qvalue = lunar_critic(network["hidden"], 4, obs_dims=LUNAR_QVALUE_DIMS)
+    save_checkpoint(checkpoint_path(out, 0), task="lunarlander",
+                    payload={"config": {"network": network}, "state": {"actor": actor.state_dict(),
+                                                                        "qvalue": qvalue.state_dict()}})
+    return out
+
+
+def run_argv(out: Path, machine: Path, *extra: str) -> list[str]:
+    """A two-cell ``dcsc run lunarlander --quick`` (presets expert, noisy) at a tiny scale."""
+    return ["run", "lunarlander", "--quick", "--methods", "machine", "dcsc", "--out", str(out),
+            f"pretrain.out_dir={machine}", *TINY, *extra]
+
+
+@pytest.fixture(scope="module")
+def full_run(machine_dir, tmp_path_factory) -> Path:
+    """The uninterrupted run: its results folder."""
+    out = tmp_path_factory.mktemp("full")
+    assert main(run_argv(out, machine_dir)) == 0
+    return out / "lunarlander"
+
+
+# -- help -------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     "argv, expected",
     [
-        (["run", "lunarlander", "--help"], "--methods"),
+        (["--help"], "usage: dcsc [-h]"),
+        (["pretrain", "--help"], "usage: dcsc pretrain"),
         (["pretrain", "uav", "--help"], "--resume"),
+        (["play", "--help"], "usage: dcsc play"),
+        (["run", "--help"], "usage: dcsc run"),
+        (["run", "lunarlander", "--help"], "--methods"),
+        (["run", "--help"], "<pretrain.out_dir>/seed<s>/checkpoint.pt, relative to the current folder"),
+        (["run", "--help"], "a missing one is pretrained first"),
+        (["sweep", "--help"], "usage: dcsc sweep"),
         (["reproduce", "--help"], "--quick"),
+        (["evaluate", "--help"], "usage: dcsc evaluate"),
     ],
 )
-def test_subcommand_help_is_the_recipes_own(argv, expected, capsys):
+def test_every_subcommand_has_its_own_help(argv, expected, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(argv)
     assert exit_info.value.code == 0
-    assert expected in capsys.readouterr().out
+    assert expected in " ".join(capsys.readouterr().out.split())
 
 
-def test_unknown_task_is_refused_with_the_choices(capsys):
+def test_every_option_of_every_command_has_help_text():
+    commands = next(a for a in build_parser()._actions if a.dest == "command")
+    for name, sub in commands.choices.items():
+        for action in sub._actions:
+            assert action.help, f"dcsc {name} {action.option_strings or action.dest} has no help"
+
+
+def test_help_and_config_errors_do_not_load_torch(tmp_path):
+    """In a fresh interpreter: help, an argparse error and a config error leave torch unimported."""
+    code = (
+        "import sys\n"
+        "from dcsc_torchrl.cli import main\n"
+        "for argv in (['run', '--help'], ['pretrain', 'mars']):\n"
+        "    try: main(argv)\n"
+        "    except SystemExit: pass\n"
+        "assert main(['pretrain', 'lunarlander', 'train.episodez=5']) == 2\n"
+        "assert main(['run', 'uav', 'protocol.validation_scenarios=-4']) == 2\n"
+        "print(sorted(m for m in ('torch', 'torchrl', 'tensordict', 'ray') if m in sys.modules))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_overrides_may_stand_anywhere_even_after_nargs_options():
+    args = build_parser().parse_args(["run", "lunarlander", "--quick", "--methods", "machine", "pretrain.out_dir=X",
+                                      "--operators", "expert", "noisy", "seed=3"])
+    assert args.methods == ["machine"] and args.operators == ["expert", "noisy"]
+    assert args.overrides == ["pretrain.out_dir=X", "seed=3"] and args.quick
+
+
+def test_run_help_names_every_method_it_accepts(capsys):
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    assert "experiment.METHODS" in capsys.readouterr().out
+    assert main(["run", "lunarlander", "--methods", "nothing"]) == 2
+    line = capsys.readouterr().err
+    assert all(method in line for method in METHODS)
+
+
+# -- one-line errors ------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "argv, needles",
+    [
+        (["pretrain", "lunarlander", "train.episodez=5"], ["unknown key train.episodez", "did you mean train.episodes?"]),
+        (["pretrain", "lunarlander", "train.episodes=abc"], ["train.episodes: expected an int, got 'abc'"]),
+        (["pretrain", "lunarlander", "train.episodes=2.5"], ["train.episodes: expected an int, got 2.5"]),
+        (["pretrain", "lunarlander", "optim.lr=abc"], ["optim.lr: expected a number, got 'abc'"]),
+        (["pretrain", "lunarlander", "optim.lr=-1e-3"], ["optim.lr: expected a value > 0"]),
+        (["pretrain", "uav", "env=3"], ["env: expected a group of keys"]),
+        (["pretrain", "lunarlander", "train.episodes"], ["override 'train.episodes' is not of the form key=value"]),
+        (["run", "lunarlander", "protocol.validation_scenarios=-4"], ["protocol.validation_scenarios", ">= 1", "-4"]),
+        (["run", "uav", "pretrain.seeds=[a]"], ["pretrain.seeds: expected a list of ints"]),
+        (["run", "lunarlander", "--operators", "nobody"], ["unknown operator preset 'nobody'", "expert"]),
+        (["run", "lunarlander", "--methods", "nothing"], ["unknown method 'nothing'"]),
+        (["sweep", "lunarlander.protocol.group_size=0"], ["protocol.group_size", ">= 1"]),
+        (["sweep", "ray.workerz=2"], ["unknown key ray.workerz", "did you mean ray.workers?"]),
+        (["evaluate", "a.b=1"], ["takes no key=value overrides"]),
+    ],
+)
+def test_a_bad_input_is_one_line_naming_it_and_exit_2(argv, needles, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # nothing may be pretrained or written: checked below
+    try:
+        code = main(argv)
+    except SystemExit as exit_info:  # argparse's own errors
+        code = exit_info.code
+    assert code == 2
+    line = one_line_error(capsys)
+    for needle in needles:
+        assert needle in line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_argparse_errors_are_one_line_with_the_commands_name(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["pretrain", "mars"])
     assert exit_info.value.code == 2
-    assert "lunarlander" in capsys.readouterr().err
+    line = one_line_error(capsys)
+    assert line.startswith("dcsc pretrain: error:") and "lunarlander" in line and "dcsc pretrain --help" in line
 
 
 def test_play_without_checkpoint_says_how_to_get_one(tmp_path):
     with pytest.raises(SystemExit) as exit_info:
         main(["play", "lunarlander", "--checkpoint", str(tmp_path / "missing.pt")])
     assert "dcsc pretrain lunarlander" in str(exit_info.value.code)
+
+
+# -- checkpoints ----------------------------------------------------------------------
+def test_every_command_reads_one_checkpoint_layout():
+    assert checkpoint_path("runs/x", 2) == Path("runs/x/seed2/checkpoint.pt")
+    cfg = load_config(RECIPES / "shared_control_lunarlander.yaml")
+    args = build_parser().parse_args(["play", "lunarlander"])
+    assert args.checkpoint is None  # dcsc play then reads checkpoint_path(pretrain.out_dir, first seed)
+    assert checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0]).parts[-2:] == ("seed0", "checkpoint.pt")
+
+
+@pytest.mark.parametrize(
+    "content, needle",
+    [
+        (b"", "is empty"),
+        (b"not a checkpoint at all", "is corrupt or truncated"),
+        ("truncated", "is corrupt or truncated"),
+    ],
+)
+def test_a_broken_checkpoint_is_one_line_naming_its_path(content, needle, machine_dir, tmp_path, capsys):
+    broken = checkpoint_path(tmp_path / "pre", 0)
+    broken.parent.mkdir(parents=True)
+    if content == "truncated":
+        whole = checkpoint_path(machine_dir, 0).read_bytes()
+        content = whole[: len(whole) // 2]
+    broken.write_bytes(content)
+    code = main(["run", "lunarlander", "--quick", "--operators", "expert", "--methods", "machine",
+                 "--out", str(tmp_path / "res"), f"pretrain.out_dir={tmp_path / 'pre'}", *TINY])
+    assert code == 2
+    line = one_line_error(capsys)
+    assert str(broken) in line and needle in line and "weights_only" not in line
+
+
+def test_checkpoints_are_readable_by_the_group_and_leave_no_temp_files(tmp_path):
+    path = tmp_path / "run" / "checkpoint.pt"
+    path.parent.mkdir()
+    stale = path.parent / f".{path.name}.abc123.tmp"  # what a writer killed mid-write leaves
+    stale.write_bytes(b"half")
+    save_checkpoint(path, task="uav", payload={"x": torch.zeros(2)})
+    assert stale_temp_files(path) == [] and not stale.exists()
+    old = os.umask(0o022)
+    try:
+        save_checkpoint(path, task="uav", payload={"x": torch.zeros(2)})
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644
+    with pytest.raises(CheckpointError, match="written for task 'uav'"):
+        load_checkpoint(path, task="lunarlander")
+
+
+def test_resume_refuses_another_config_and_names_the_keys(tmp_path, capsys):
+    run_dir = tmp_path / "seed0"
+    cfg = load_config(PRETRAIN_YAML, ["env.num_envs=3", f"logger.out_dir={run_dir}"], quick=True)
+    save_checkpoint(run_dir / "checkpoint.pt", task="lunarlander", payload={"config": to_plain(cfg)})
+    assert main(["pretrain", "lunarlander", "--quick", "--resume", "--out", str(run_dir)]) == 2
+    line = one_line_error(capsys)
+    assert str(run_dir / "checkpoint.pt") in line and "env.num_envs: 3 -> 2" in line
+
+
+def test_resume_without_a_checkpoint_names_the_missing_file(tmp_path, capsys):
+    assert main(["pretrain", "lunarlander", "--quick", "--resume", "--out", str(tmp_path / "none")]) == 2
+    assert str(tmp_path / "none" / "checkpoint.pt") in one_line_error(capsys)
+
+
+def test_config_diff_names_changed_added_and_removed_keys():
+    assert config_diff({"a": {"b": 1, "c": 2}}, {"a": {"b": 1, "d": 2}}) == ["a.c: 2 -> (absent)",
+                                                                               "a.d: (absent) -> 2"]
+    with pytest.raises(ConfigError, match="no config file"):
+        load_config(RECIPES / "missing.yaml")
+
+
+# -- dcsc run: resume, folders that never contradict themselves ------------------------
+def test_a_run_killed_after_its_first_cell_resumes_to_the_same_csvs(full_run, machine_dir, tmp_path, monkeypatch,
+                                                                     capsys):
+    real = shared_control.run_cell
+    calls = []
+
+    def killed_at_second_cell(*args, **kwargs):
+        calls.append(args[2])
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(shared_control, "run_cell", killed_at_second_cell)
+    assert main(run_argv(tmp_path, machine_dir)) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "dcsc: interrupted"
+    task_dir = tmp_path / "lunarlander"
+    halfway = pd.read_csv(task_dir / "episodes.csv")
+    assert set(halfway["operator"]) == {"expert"}  # the summary describes what the tables hold
+    assert "expert" in (task_dir / "summary.md").read_text()
+
+    monkeypatch.setattr(shared_control, "run_cell", real)
+    (task_dir / "episodes.csv.tmp").write_text("left by a kill")
+    assert main(run_argv(tmp_path, machine_dir)) == 0
+    assert f"results in {task_dir}" in capsys.readouterr().err
+    for name in ("episodes.csv", "trace.csv", "theta.csv"):
+        assert (task_dir / name).read_bytes() == (full_run / name).read_bytes(), name
+    assert not list(task_dir.rglob("*.tmp"))
+
+
+def test_a_finished_run_run_again_runs_no_cell(full_run, machine_dir, monkeypatch):
+    monkeypatch.setattr(shared_control, "run_cell", lambda *a, **k: pytest.fail("a finished cell ran again"))
+    episodes = (full_run / "episodes.csv").read_bytes()
+    assert main(run_argv(full_run.parent, machine_dir)) == 0
+    assert (full_run / "episodes.csv").read_bytes() == episodes
+
+
+def test_a_run_into_a_folder_of_another_config_is_refused(full_run, machine_dir, monkeypatch, capsys):
+    monkeypatch.setattr(shared_control, "run_cell", lambda *a, **k: pytest.fail("a cell ran into a foreign folder"))
+    assert main(run_argv(full_run.parent, machine_dir, "protocol.max_steps=31")) == 2
+    line = one_line_error(capsys)
+    assert str(full_run) in line and "protocol.max_steps: 30 -> 31" in line and "--fresh" in line
+
+
+def test_an_old_folder_without_a_record_is_refused_and_fresh_starts_over(tmp_path, capsys):
+    task_dir = tmp_path / "lunarlander"
+    (task_dir / "cells" / "expert-seed0").mkdir(parents=True)
+    (task_dir / "episodes.csv").write_text("old")
+    (task_dir / "fig_performance.png").write_text("old")
+    (task_dir / "notes.txt").write_text("mine")
+    record = {"config": {"seed": 0}, "methods": ["machine"], "cells": ["expert-seed0"]}
+    with pytest.raises(ConfigError, match=f"no {RUN_RECORD}"):
+        prepare_results(task_dir, record, fresh=False)
+    prepare_results(task_dir, record, fresh=True)
+    assert sorted(p.name for p in task_dir.iterdir()) == ["notes.txt", RUN_RECORD]
+    prepare_results(task_dir, record, fresh=False)  # the same config again: accepted
+
+
+# -- logs and Ctrl-C --------------------------------------------------------------------
+def test_building_an_env_logs_no_torchrl_info(monkeypatch):
+    from dcsc_torchrl.tasks import make_lunar_env
+
+    monkeypatch.delenv("DCSC_VERBOSE", raising=False)
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    logger = logging.getLogger("torchrl")
+    logger.addHandler(handler)
+    old = logger.level
+    logger.setLevel(logging.INFO)
+    try:
+        make_lunar_env(2).close()
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(old)
+    assert [r.getMessage() for r in records if r.levelno < logging.WARNING] == []
+
+
+def test_ctrl_c_exits_130_with_one_line(tmp_path):
+    process = subprocess.Popen([sys.executable, "-m", "dcsc_torchrl.cli", "run", "lunarlander", "--quick",
+                                f"pretrain.out_dir={tmp_path / 'pre'}", "--out", str(tmp_path / 'res')],
+                               stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    time.sleep(2.0)  # inside main by then: importing torch, checking the config or pretraining
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1] == "dcsc: interrupted"
+
+
+def test_the_cli_module_imports_no_heavy_library_at_module_level():
+    assert not hasattr(cli, "torch") and not hasattr(cli, "shared_control")
