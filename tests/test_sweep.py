@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -16,7 +17,7 @@ from recipes.shared_control import RECIPES, pretrained_machine, write_csv
 from recipes.sweep import TABLES, main, split_overrides
 
 PROTOCOL = ["protocol.operator_runs=1", "protocol.collaboration_runs=1", "protocol.validation_scenarios=2",
-            "protocol.group_size=1", "protocol.max_steps=60", "machine.mc_samples=2"]
+            "protocol.group_size=1", "protocol.max_steps=60"]
 METHODS = ["machine", "dcsc"]
 
 
@@ -114,5 +115,5 @@ def test_task_prefixed_overrides_go_to_that_tasks_protocol_config():
 
 
 def test_dcsc_sweep_hands_its_arguments_to_the_recipe():
-    args, rest = build_parser().parse_known_args(["sweep", "--quick", "--out", "DIR", "ray.workers=1"])
-    assert args.run is _sweep and rest == ["--quick", "--out", "DIR", "ray.workers=1"]
+    args = build_parser().parse_args(["sweep", "ray.workers=1", "--quick", "--out", "DIR"])
+    assert args.handler is _sweep and args.quick and args.out == Path("DIR") and args.overrides == ["ray.workers=1"]
