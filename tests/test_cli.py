@@ -348,3 +348,20 @@ def test_ctrl_c_exits_130_with_one_line(tmp_path):
 
 def test_the_cli_module_imports_no_heavy_library_at_module_level():
     assert not hasattr(cli, "torch") and not hasattr(cli, "shared_control")
+
+
+def test_the_errors_shown_in_docs_cli_md_are_the_ones_printed(capsys, tmp_path, monkeypatch):
+    import re
+    import shlex
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
+    examples = re.findall(r"^ +\$ dcsc (.+)\n +(.+)$", text, flags=re.M)
+    assert len(examples) >= 4
+    monkeypatch.chdir(tmp_path)
+    for command, shown in examples:
+        try:
+            code = main(shlex.split(command))
+        except SystemExit as exit_info:
+            code = exit_info.code
+        assert code == 2, command
+        assert one_line_error(capsys) == shown.strip(), command
