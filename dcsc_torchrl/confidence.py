@@ -21,13 +21,16 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 from numbers import Real
 
 import torch
 from torch import Tensor
 
 __all__ = [
+    "CHECK_FINITE_ENV",
     "check_finite",
+    "check_finite_every_frame",
     "check_in_range",
     "human_confidence",
     "knowledge_update",
@@ -52,6 +55,15 @@ _BLOCK = 2048
 # the largest table (entries) built at once.
 _M_CACHED = (-60.0, 40.0)
 _MAX_TABLE = 2_000_000
+# Above this delta2 the machine integral is split at the kernel's step (``_steep_machine``):
+# the lattice's cost grows like delta2 (spacing 0.8 / delta2), the split rule's does not.
+_STEEP_DELTA = 3.0
+# The split rule: its window is |delta2 * ln(u / y)| <= _T_STEEP (outside it the kernel is
+# e^{-delta2 |t|} to a relative 1e-16), covered by two Gauss-Legendre panels of _N_STEEP nodes.
+_T_STEEP = 37.0
+_N_STEEP = 40
+# Set to 1 to check the frames of every call for NaN / inf (see check_finite_every_frame).
+CHECK_FINITE_ENV = "DCSC_CHECK_FINITE"
 
 
 # --------------------------------------------------------------------------------------
@@ -161,6 +173,20 @@ def check_finite(name: str, tensor: Tensor) -> Tensor:
             f"{tensor.detach()[index].item()} at index {index}"
         )
     return tensor
+
+
+def check_finite_every_frame() -> bool:
+    """Whether the per-frame modules check every frame for NaN / inf (``DCSC_CHECK_FINITE=1``).
+
+    :func:`check_finite` reads its result on the host (``bool(...)``): on a GPU that is one
+    synchronisation per call. The modules that run on every frame (the MC-dropout machine,
+    the arbiters) therefore check their inputs on their first call only, where a wrong
+    observation width, NaN weights or a missing transform show up, and check every frame
+    only when this returns True: set the environment variable ``DCSC_CHECK_FINITE=1`` to
+    find the frame where a NaN enters. The operator's transform checks its frames always:
+    they come from the env on the host, where a check costs no synchronisation.
+    """
+    return os.environ.get(CHECK_FINITE_ENV, "") not in ("", "0")
 
 
 def _check_mode(mode: str) -> None:
@@ -394,7 +420,7 @@ def knowledge_update(
 def _check_human_params(p: float, eta: float, delta1: float) -> None:
     check_in_range("p", p, 0.0, 1.0, high_inclusive=False)
     check_in_range("eta", eta, 0.0, 1.0, low_inclusive=False, high_inclusive=False)
-    check_in_range("delta1", delta1, 0.0, None, low_inclusive=False)
+    check_in_range("delta1", delta1, 0.0, math.inf, low_inclusive=False, high_inclusive=False)
 
 
 def human_confidence(k: TensorLike, p: float, eta: float, delta1: float) -> Tensor:
@@ -431,11 +457,13 @@ def human_confidence(k: TensorLike, p: float, eta: float, delta1: float) -> Tens
     k_t = _as_float_tensor("k", k)
     _check_nonnegative_finite("k", k_t)
     out_dtype = k_t.dtype
-    a = math.log(1.0 / eta)
-    x = (k_t.to(_compute_dtype(k_t)) * a).reshape(-1)
-    positive = x > 0
-    x_safe = torch.where(positive, x, torch.ones_like(x))
-    j = _lattice_trapezoid(torch.log(x_safe), ("human",), float(delta1), _H)
+    a = -math.log(eta)  # not log(1 / eta): 1 / eta overflows for a subnormal eta
+    k_c = k_t.to(_compute_dtype(k_t)).reshape(-1)
+    x = k_c * a  # may overflow to inf (huge k, tiny eta): the sigmoid below takes it
+    positive = k_c > 0
+    # ln x as ln k + ln a: finite for every finite k > 0 and eta in (0, 1)
+    m = torch.log(torch.where(positive, k_c, torch.ones_like(k_c))) + math.log(a)
+    j = _lattice_trapezoid(m, ("human",), float(delta1), _H)
     # (1-p) e^-x / ((1-p) e^-x + p) = sigmoid(ln((1-p)/p) - x); exactly 1 when p = 0
     logit = math.log1p(-p) - math.log(p) if p > 0 else math.inf
     share = torch.sigmoid(logit - x)
@@ -450,7 +478,68 @@ def human_confidence(k: TensorLike, p: float, eta: float, delta1: float) -> Tens
 
 def _check_machine_params(lam: float, delta2: float) -> None:
     check_in_range("lam", lam, 0.0, 1.0, low_inclusive=False, high_inclusive=False)
-    check_in_range("delta2", delta2, 1.0, None, low_inclusive=False)
+    check_in_range("delta2", delta2, 1.0, math.inf, low_inclusive=False, high_inclusive=False)
+
+
+@functools.lru_cache(maxsize=64)
+def _steep_nodes(delta: float, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """Nodes of :func:`_steep_machine`: ``t_j`` (in ``s - ln y``), ``e^{t_j}`` and the weights
+    ``[n, 2]`` of the reject (column 0) and accept (column 1) kernels."""
+    x, w = (torch.as_tensor(v, dtype=torch.float64) for v in _gauss_legendre(_N_STEEP))
+    half = _T_STEEP / 2
+    tau = torch.cat([(x - 1.0) * half, (x + 1.0) * half])  # two panels: [-T, 0] and [0, T]
+    weights = torch.cat([w, w]) * half / delta
+    coef = torch.stack([weights * torch.sigmoid(tau), weights * torch.sigmoid(-tau)], dim=-1)
+    t = tau / delta
+    return t.to(dtype=dtype, device=device), t.exp().to(dtype=dtype, device=device), coef.to(
+        dtype=dtype, device=device
+    )
+
+
+@functools.cache
+def _gauss_legendre(n: int) -> tuple[list[float], list[float]]:
+    import numpy as np
+
+    x, w = np.polynomial.legendre.leggauss(n)
+    return x.tolist(), w.tolist()
+
+
+def _steep_machine(m: Tensor, delta: float) -> Tensor:
+    """``b_m`` at ``y = e^m`` for a steep cost (``delta2 > _STEEP_DELTA``), at a cost flat in delta2.
+
+    The kernel ``σ(δ t)`` (``t = s - m``, ``s = ln u``) is a step smoothed over ``|t| ~ 1/δ``.
+    With ``L = T / δ``: for ``t < -L`` it is ``e^{δ t}`` to a relative ``e^{-T}``, for
+    ``t > L`` it is 1 to an absolute ``e^{-T}``, so (docs/math.md, section 5)::
+
+        b_m = y^-δ γ(δ+1, y e^-L) + ∫_{-L}^{L} w(m + t) σ(δ t) dt + exp(-y e^L)
+
+    with ``w(s) = exp(s - e^s)``; the middle integral, in ``τ = δ t``, is summed with
+    Gauss-Legendre on ``[-T, 0]`` and ``[0, T]`` (the kernel's poles sit at ``τ = ±iπ``
+    whatever δ). For ``y < 1`` the accept form ``1 - b_m`` is summed instead (relative
+    accuracy where ``b_m -> 1``): ``1 - b_m = -expm1(-y e^-L) - y^-δ γ(...) + ∫ w σ(-δ t)``.
+    """
+    if m.numel() == 0:
+        return m.new_zeros(0)
+    t, growth, coef = _steep_nodes(delta, m.dtype, m.device)
+    y = torch.exp(m)
+    large = m >= 0
+    L = _T_STEEP / delta
+    block = max(16, _BLOCK * _n_nodes(_H) // t.numel())
+    near_parts = []
+    for m_b, y_b in zip(m.split(block), y.split(block), strict=True):
+        w = torch.exp((m_b.unsqueeze(-1) + t).addcmul_(y_b.unsqueeze(-1), growth, value=-1.0))
+        near_parts.append(w @ coef)
+    near = torch.cat(near_parts)
+    # the e^{δ t} tail, only where it counts (y >= 1; below, it is under e^-T of 1 - b_m)
+    x_low = torch.where(large, y * math.exp(-L), torch.zeros_like(y))
+    lower = torch.special.gammainc(torch.tensor(delta + 1.0, dtype=m.dtype, device=m.device), x_low)
+    has_tail = lower > 0
+    log_tail = math.lgamma(delta + 1.0) - delta * m + torch.log(torch.where(has_tail, lower, torch.ones_like(lower)))
+    # exp of 0 where there is no tail: an overflowing exp would turn where()'s zero gradient to NaN
+    tail = torch.where(has_tail, torch.exp(torch.where(has_tail, log_tail, torch.zeros_like(log_tail))), 0.0)
+    reject = tail + near[:, 0] + torch.exp(-y * math.exp(L))
+    accept = -torch.expm1(-y * math.exp(-L)) + near[:, 1]
+    return torch.where(large, reject, 1.0 - accept)
 
 
 def machine_confidence(c: TensorLike, lam: float, delta2: float) -> Tensor:
@@ -486,15 +575,19 @@ def machine_confidence(c: TensorLike, lam: float, delta2: float) -> Tensor:
     c_t = _as_float_tensor("c", c)
     _check_nonnegative_finite("c", c_t)
     out_dtype = c_t.dtype
-    a = math.log(1.0 / lam)
-    y = (c_t.to(_compute_dtype(c_t)) * a).reshape(-1)
-    positive = y > 0
-    m = torch.log(torch.where(positive, y, torch.ones_like(y)))
+    a = -math.log(lam)  # not log(1 / lam): 1 / lam overflows for a subnormal lam
+    c_c = c_t.to(_compute_dtype(c_t)).reshape(-1)
+    positive = c_c > 0
+    # ln y as ln c + ln a: finite for every finite c > 0 (c * a may overflow)
+    m = torch.log(torch.where(positive, c_c, torch.ones_like(c_c))) + math.log(a)
     delta = float(delta2)
-    h = min(_H, 2.0 * _H / delta)
-    large = m >= 0
-    total = _lattice_trapezoid(m, ("accept", "reject"), delta, h, which=large.to(torch.long))
-    b = torch.where(large, total, 1.0 - total)
+    if delta > _STEEP_DELTA:
+        b = _steep_machine(m, delta)
+    else:
+        h = min(_H, 2.0 * _H / delta)
+        large = m >= 0
+        total = _lattice_trapezoid(m, ("accept", "reject"), delta, h, which=large.to(torch.long))
+        b = torch.where(large, total, 1.0 - total)
     b = torch.where(positive, b, torch.ones_like(b)).clamp(0.0, 1.0)
     return b.reshape(c_t.shape).to(out_dtype)
 

@@ -266,6 +266,36 @@ def test_machine_confidence_accurate_for_steep_cost(lam, delta2):
     assert err <= TOL, f"max |b_m - reference| = {err:.3e} at c = {where:.3e}"
 
 
+@pytest.mark.parametrize("delta2", [3.0001, 10.0, 100.0, 1000.0])
+def test_machine_confidence_accurate_for_very_steep_cost_split_rule(delta2):
+    # above delta2 = 3 the integral is split at the kernel's step (cost flat in delta2)
+    c = log_grid(8)
+    ref = torch.tensor(
+        [machine_confidence_reference(float(v), 0.6, delta2) for v in c], dtype=torch.float64
+    )
+    err, where = max_error(machine_confidence(c, 0.6, delta2), ref, c)
+    assert err <= TOL, f"max |b_m - reference| = {err:.3e} at c = {where:.3e}"
+    c_grad = torch.tensor([1e-3, 0.3, 2.0, 40.0], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda c: machine_confidence(c, 0.6, delta2), (c_grad,))
+
+
+def test_split_rule_continues_the_lattice_at_the_switch():
+    c = log_grid(30, 1e-6, 1e3)
+    below = machine_confidence(c, 0.6, confidence._STEEP_DELTA)
+    above = machine_confidence(c, 0.6, confidence._STEEP_DELTA + 1e-9)
+    assert (below - above).abs().max() < 1e-8
+
+
+@pytest.mark.parametrize("tiny", [1e-300, 5e-324])
+def test_subnormal_eta_and_lambda_give_values_not_overflow_errors(tiny):
+    k = torch.tensor([0.0, 1e-6, 0.5, 3.0, 1e300], dtype=torch.float64)
+    b_h = human_confidence(k, 0.1, tiny, 2.0)
+    b_m = machine_confidence(k, tiny, 1.05)
+    assert torch.isfinite(b_h).all() and torch.isfinite(b_m).all()
+    assert b_h[0] == 0 and b_m[0] == 1 and (torch.diff(b_m) <= 0).all()
+    assert b_h[-1] == 0 and b_m[-1] < 1e-10
+
+
 def _human(kw: dict) -> dict:
     return {"p": kw["p"], "eta": kw["eta"], "delta1": kw["delta1"]}
 
@@ -455,6 +485,7 @@ INVALID = [
     ("human", "eta", 1.0),
     ("human", "delta1", 0.0),
     ("human", "delta1", -2.0),
+    ("human", "delta1", float("inf")),
     ("human", "k", -1.0),
     ("human", "k", float("inf")),
     ("human", "k", float("nan")),
@@ -462,6 +493,7 @@ INVALID = [
     ("machine", "lam", 1.5),
     ("machine", "delta2", 1.0),
     ("machine", "delta2", 0.5),
+    ("machine", "delta2", float("inf")),
     ("machine", "c", -1e-3),
     ("machine", "c", float("inf")),
     ("knowledge", "K", 0.0),
