@@ -306,6 +306,7 @@ def run_scenarios(
                           auto_register_policy_transforms=False)
     active = torch.ones(n_envs, dtype=torch.bool)
     rows: list[dict[str, Any] | None] = [None] * n_envs
+    beta_sum, frame_count = torch.zeros(n_envs), torch.zeros(n_envs)
     traced: list[TensorDictBase] = []
     frames: list[TensorDictBase] = []
     extra = ["success", "path_length"] if task == "uav" else ["success"]
@@ -315,13 +316,16 @@ def run_scenarios(
         before_done = (done.long().cumsum(-1) - done.long()) == 0
         in_first = active.unsqueeze(-1) & before_done
         frames.append(batch.select(*keys, strict=False)[in_first])
+        beta_sum += (batch["beta"].detach().mean(-1) * in_first).sum(-1)
+        frame_count += in_first.sum(-1)
         if trace and in_first[0].any():
             traced.append(batch[0][in_first[0]])
         for i in (active & done.any(-1)).nonzero().reshape(-1).tolist():
             t = int(done[i].nonzero()[0])
             nxt = batch[i, t]["next"]
             rows[i] = {"return": nxt["episode_reward"].item(), "steps": int(nxt["step_count"].item()),
-                       **{key: nxt[key].item() for key in extra}}
+                       **{key: nxt[key].item() for key in extra},
+                       "mean_beta": (beta_sum[i] / frame_count[i]).item()}
         active &= ~done.any(-1)
         if update is not None:
             update(batch)

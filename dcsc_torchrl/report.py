@@ -17,9 +17,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-METHOD_ORDER = ["machine", "operator", "hula", "dcsc"]
-METHOD_LABEL = {"lunarlander": {"machine": "A2C", "operator": "operator", "hula": "HULA", "dcsc": "DC-SC"},
-                "uav": {"machine": "DDPG", "operator": "operator", "hula": "HULA", "dcsc": "DC-SC"}}
+METHOD_ORDER = ["machine", "operator", "hula", "dcsc", "dcsc_centred", "dcsc_frozen", "best_constant"]
+_SHARED_LABELS = {"operator": "operator", "hula": "HULA", "dcsc": "DC-SC (Eq. 15)", "dcsc_centred": "DC-SC (centred)",
+                  "dcsc_frozen": "DC-SC, confidences frozen", "best_constant": "best constant β (oracle)"}
+METHOD_LABEL = {"lunarlander": {"machine": "A2C", **_SHARED_LABELS}, "uav": {"machine": "DDPG", **_SHARED_LABELS}}
+LEARNED = ("dcsc", "dcsc_centred", "dcsc_frozen")
 METRICS = {"lunarlander": ["success", "steps", "return"], "uav": ["success", "path_length", "return"]}
 Z95 = 1.959963984540054
 
@@ -45,6 +47,23 @@ def _methods(frame: pd.DataFrame) -> list[str]:
     return [m for m in METHOD_ORDER if m in set(frame["method"])]
 
 
+def with_best_constant(frame: pd.DataFrame) -> pd.DataFrame:
+    """Replaces the ``constant`` sweep's rows by those of its best beta, as method ``best_constant``.
+
+    The best beta is picked per (operator, pretraining seed) by success rate, ties broken
+    by return: an oracle that looks at the very scenarios it is scored on, an upper bound
+    for any fixed blend rather than a method.
+    """
+    if "constant" not in set(frame["method"]):
+        return frame
+    sweep = frame[frame["method"] == "constant"]
+    score = sweep.groupby(["operator", "pretrain_seed", "constant_beta"])[["success", "return"]].mean()
+    best = score.sort_values(["success", "return"]).groupby(level=[0, 1]).tail(1).reset_index()
+    keep = sweep.merge(best[["operator", "pretrain_seed", "constant_beta"]], on=["operator", "pretrain_seed",
+                                                                              "constant_beta"])
+    return pd.concat([frame[frame["method"] != "constant"], keep.assign(method="best_constant")], ignore_index=True)
+
+
 def summary_table(frame: pd.DataFrame, task: str, by: str | None = None) -> str:
     """A markdown table: one row per method (and ``by`` value), mean ± 95% CI per metric."""
     metrics = METRICS[task]
@@ -67,7 +86,7 @@ def write_task_summary(results_dir: str | os.PathLike, task: str, main_operator:
     its per-group table, and the beyond-the-paper tables (every preset, every seed)."""
     results_dir = Path(results_dir)
     episodes = pd.read_csv(results_dir / "episodes.csv")
-    val = episodes[episodes["phase"] == "validation"]
+    val = with_best_constant(episodes[episodes["phase"] == "validation"])
     main = val[(val["operator"] == main_operator) & (val["pretrain_seed"] == main_seed)]
     parts = [
         f"# {task}: validation results\n",
@@ -80,11 +99,89 @@ def write_task_summary(results_dir: str | os.PathLike, task: str, main_operator:
         summary_table(val, task, by="operator"),
         "\n## Every pretraining seed, pooled over presets\n",
         summary_table(val, task, by="pretrain_seed"),
+        *_constant_sweep_section(episodes, task),
+        *_theta_section(results_dir),
+        *_calibration_section(results_dir),
         "",
     ]
     path = results_dir / "summary.md"
     path.write_text("\n".join(parts))
     return path
+
+
+def constant_sweep(episodes: pd.DataFrame) -> pd.DataFrame:
+    """Validation success and return per (operator, constant beta), pooled over pretraining seeds."""
+    sweep = episodes[(episodes["phase"] == "validation") & (episodes["method"] == "constant")]
+    return sweep.groupby(["operator", "constant_beta"])[["success", "return"]].mean().reset_index()
+
+
+def _constant_sweep_section(episodes: pd.DataFrame, task: str) -> list[str]:
+    sweep = constant_sweep(episodes)
+    if sweep.empty:
+        return []
+    table = sweep.pivot(index="operator", columns="constant_beta", values="success")
+    betas = list(table.columns)
+    learned = episodes[(episodes["phase"] == "validation") & episodes["method"].isin(LEARNED)]
+    by_method = learned.groupby(["operator", "method"])[["success", "mean_beta"]].mean() if len(learned) else None
+    header = "| operator | " + " | ".join(f"β={b:g}" for b in betas) + " | " + " | ".join(
+        f"{METHOD_LABEL[task][m]} (mean β)" for m in LEARNED) + " |"
+    lines = ["\n## Success against a constant β (validation, pooled over pretraining seeds)\n",
+             "Every β of the sweep on the same scenarios; the learned arbiters' success with the mean β "
+             "they gave the machine. The best constant is an oracle (chosen on the scenarios it is "
+             "scored on).\n", header, "|" + "---|" * (1 + len(betas) + len(LEARNED))]
+    for operator, row in table.iterrows():
+        cells = [f"{row[b]:.2f}" for b in betas]
+        for method in LEARNED:
+            if by_method is not None and (operator, method) in by_method.index:
+                success, beta = by_method.loc[(operator, method)]
+                cells.append(f"{success:.2f} ({beta:.2f})")
+            else:
+                cells.append("–")
+        lines.append(f"| {operator} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _theta_section(results_dir: Path) -> list[str]:
+    path = results_dir / "theta.csv"
+    if not path.exists():
+        return []
+    theta = pd.read_csv(path)
+    if theta.empty:
+        return []
+    lines = ["\n## θ over the online updates (first / after collaboration / last, mean over cells)\n",
+             "| method | updates per cell (collaboration / validation) | θ first | θ after collaboration | θ last |",
+             "|---|---|---|---|---|"]
+    theta["value"] = theta["theta"].map(lambda text: np.array(eval(text, {})))
+    for method, sub in theta.groupby("method", sort=False):
+        cells = list(sub.groupby(["operator", "pretrain_seed"]))
+        def pick(frame, phase=None, last=True):
+            part = frame if phase is None else frame[frame["phase"] == phase]
+            return part["value"].iloc[-1 if last else 0] if len(part) else np.full_like(frame["value"].iloc[0], np.nan)
+        first = np.mean([pick(c, last=False) for _, c in cells], axis=0)
+        collab = np.mean([pick(c, "collaboration") for _, c in cells], axis=0)
+        last = np.mean([pick(c) for _, c in cells], axis=0)
+        n_collab = np.mean([(c["phase"] == "collaboration").sum() for _, c in cells])
+        n_val = np.mean([(c["phase"] == "validation").sum() for _, c in cells])
+        fmt = lambda v: ", ".join(f"{x:.3f}" for x in np.atleast_1d(v))  # noqa: E731
+        lines.append(f"| {method} | {n_collab:.0f} / {n_val:.0f} | {fmt(first)} | {fmt(collab)} | {fmt(last)} |")
+    return lines
+
+
+def _calibration_section(results_dir: Path) -> list[str]:
+    path = results_dir / "calibration.csv"
+    if not path.exists():
+        return []
+    calibration = pd.read_csv(path)
+    columns = ["b_m_p10", "b_m_p50", "b_m_p90", "gap_low_b_m", "gap_high_b_m", "spearman_b_m_gap"]
+    pooled = calibration.groupby("operator")[columns].mean()
+    lines = ["\n## Machine confidence on the calibration frames (operator alone, mean over seeds)\n",
+             "b_m percentiles with the calibrated unit, and the critic's Q(s, a_machine) − Q(s, a_operator) "
+             "on the quarter of frames with the lowest and the highest b_m (a working b_m marks worse machine "
+             "actions with low confidence: gap_low < gap_high, Spearman > 0).\n",
+             "| operator | " + " | ".join(columns) + " |", "|" + "---|" * (len(columns) + 1)]
+    for operator, row in pooled.iterrows():
+        lines.append(f"| {operator} | " + " | ".join(f"{row[c]:.3g}" for c in columns) + " |")
+    return lines
 
 
 def _save(fig: plt.Figure, path: Path) -> Path:
@@ -118,9 +215,11 @@ def plot_performance(frame: pd.DataFrame, task: str, path: Path, title: str) -> 
     return _save(fig, path)
 
 
-def plot_confidence(trace: pd.DataFrame, task: str, path: Path, title: str) -> Path:
-    """Figs. 3a / 6a: human and machine confidence, and beta, along DC-SC's episode."""
-    dcsc = trace[trace["method"] == "dcsc"]
+def plot_confidence(trace: pd.DataFrame, task: str, path: Path, title: str, method: str = "dcsc_centred") -> Path:
+    """Figs. 3a / 6a: human and machine confidence, and beta, along a learned arbiter's episode."""
+    if method not in set(trace["method"]):
+        method = "dcsc"
+    dcsc = trace[trace["method"] == method]
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
     top.plot(dcsc["step"], dcsc["human_confidence"], label="human confidence $b^h$")
     top.plot(dcsc["step"], dcsc["machine_confidence"], label="machine confidence $b^m$")
@@ -136,13 +235,60 @@ def plot_confidence(trace: pd.DataFrame, task: str, path: Path, title: str) -> P
     bottom.set_ylabel("machine authority β")
     bottom.legend()
     bottom.grid(alpha=0.3)
+    fig.suptitle(f"{title}, {METHOD_LABEL[task][method]}")
+    return _save(fig, path)
+
+
+def plot_constant_sweep(episodes: pd.DataFrame, task: str, path: Path, title: str) -> Path:
+    """Success against a constant beta, one panel per operator, with the learned arbiters' points."""
+    sweep = constant_sweep(episodes)
+    operators = sorted(sweep["operator"].unique())
+    learned = episodes[(episodes["phase"] == "validation") & episodes["method"].isin(LEARNED)]
+    fig, axes = plt.subplots(1, len(operators), figsize=(4 * len(operators), 3.6), squeeze=False)
+    markers = {"dcsc": "s", "dcsc_centred": "o", "dcsc_frozen": "^"}
+    for ax, operator in zip(axes[0], operators, strict=True):
+        sub = sweep[sweep["operator"] == operator]
+        ax.plot(sub["constant_beta"], sub["success"], "-", color="gray", label="constant β")
+        for method, group in learned[learned["operator"] == operator].groupby("method"):
+            ax.plot(group["mean_beta"].mean(), group["success"].mean(), markers.get(method, "x"), ms=8,
+                    label=METHOD_LABEL[task][method])
+        ax.set_title(f"operator '{operator}'")
+        ax.set_xlabel("machine authority β")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("success rate")
+    axes[0][-1].legend(fontsize=8)
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
+def plot_theta(theta: pd.DataFrame, path: Path, title: str) -> Path:
+    """theta over the online updates of every cell, one panel per learned arbiter (and dimension)."""
+    theta = theta.assign(value=theta["theta"].map(lambda text: np.atleast_1d(eval(text, {}))))
+    methods = list(dict.fromkeys(theta["method"]))
+    fig, axes = plt.subplots(1, len(methods), figsize=(5 * len(methods), 3.6), squeeze=False)
+    dims = ("ρ", "σ", "τ")
+    for ax, method in zip(axes[0], methods, strict=True):
+        for (operator, seed), cell in theta[theta["method"] == method].groupby(["operator", "pretrain_seed"]):
+            values = np.stack(cell["value"].to_list())
+            for d in range(values.shape[1]):
+                label = f"{operator}/{seed}" + (f" θ_{dims[d]}" if values.shape[1] > 1 else "")
+                ax.plot(np.arange(1, len(values) + 1), values[:, d], lw=1, label=label)
+            split = (cell["phase"] == "collaboration").sum()
+            ax.axvline(split, color="gray", ls=":", lw=0.8)
+        ax.set_title(method)
+        ax.set_xlabel("online update (dotted: collaboration ends)")
+        ax.set_ylabel("θ")
+        ax.grid(alpha=0.3)
+    axes[0][-1].legend(fontsize=6, ncol=2)
     fig.suptitle(title)
     return _save(fig, path)
 
 
 def plot_authority(trace: pd.DataFrame, task: str, path: Path, title: str) -> Path:
     """Figs. 3b / 6b: the machine's, the operator's and the shared action along DC-SC's episode."""
-    dcsc = trace[trace["method"] == "dcsc"]
+    method = "dcsc_centred" if "dcsc_centred" in set(trace["method"]) else "dcsc"
+    dcsc = trace[trace["method"] == method]
     if task == "lunarlander":
         fig, axes = plt.subplots(3, 1, figsize=(9, 6), sharex=True)
         for ax, who in zip(axes, ("machine", "operator", "shared"), strict=True):
@@ -212,8 +358,8 @@ def write_task_figures(results_dir: str | os.PathLike, task: str, main_operator:
     results_dir = Path(results_dir)
     episodes = pd.read_csv(results_dir / "episodes.csv")
     trace = pd.read_csv(results_dir / "trace.csv")
-    val = episodes[(episodes["phase"] == "validation") & (episodes["operator"] == main_operator)
-                   & (episodes["pretrain_seed"] == main_seed)]
+    val = with_best_constant(episodes[(episodes["phase"] == "validation") & (episodes["operator"] == main_operator)
+                                      & (episodes["pretrain_seed"] == main_seed)])
     trace = trace[trace["phase"] == "validation"]
     name = {"lunarlander": "LunarLander (moving pad)", "uav": "UAV path planning"}[task]
     paths = [
@@ -223,6 +369,13 @@ def write_task_figures(results_dir: str | os.PathLike, task: str, main_operator:
         plot_authority(trace, task, results_dir / "fig_actions.png", f"{name}: machine / operator / shared actions"),
         plot_reward_over_time(trace, task, results_dir / "fig_reward.png", f"{name}: reward over time, scenario 0"),
     ]
+    if "constant" in set(episodes["method"]):
+        paths.append(plot_constant_sweep(episodes, task, results_dir / "fig_constant_beta.png",
+                                         f"{name}: success against a constant β (validation)"))
+    if (results_dir / "theta.csv").exists() and (results_dir / "theta.csv").stat().st_size > 1:
+        theta = pd.read_csv(results_dir / "theta.csv")
+        if len(theta):
+            paths.append(plot_theta(theta, results_dir / "fig_theta.png", f"{name}: θ over the online updates"))
     if task == "uav":
         paths.append(plot_uav_trajectories(trace, int(trace["seed"].iloc[0]), results_dir / "fig_trajectory.png",
                                            "UAV path planning: trajectories, scenario 0"))
