@@ -239,10 +239,16 @@ def _play(args: argparse.Namespace) -> None:
 
         cfg = load_config(recipes_dir() / "shared_control_lunarlander.yaml")
         checkpoint = checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])
+    from dcsc_torchrl.config import UsageError
     from dcsc_torchrl.humans.play import main as play_main
 
-    play_main([args.task, "--assist", args.assist, *(["--checkpoint", str(checkpoint)] if checkpoint else []),
-               "--episodes", str(args.episodes), "--seed", str(args.seed)])
+    try:
+        play_main([args.task, "--assist", args.assist, *(["--checkpoint", str(checkpoint)] if checkpoint else []),
+                   "--episodes", str(args.episodes), "--seed", str(args.seed)])
+    except SystemExit as stop:  # play's own message (no checkpoint, no display): a usage error
+        if isinstance(stop.code, str):
+            raise UsageError(stop.code.removeprefix("dcsc play: ")) from None
+        raise
 
 
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], Any], Callable[[argparse.Namespace], Any]]] = {

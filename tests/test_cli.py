@@ -183,10 +183,17 @@ def test_argparse_errors_are_one_line_with_the_commands_name(capsys):
     assert line.startswith("dcsc pretrain: error:") and "lunarlander" in line and "dcsc pretrain --help" in line
 
 
-def test_play_without_checkpoint_says_how_to_get_one(tmp_path):
-    with pytest.raises(SystemExit) as exit_info:
-        main(["play", "lunarlander", "--checkpoint", str(tmp_path / "missing.pt")])
-    assert "dcsc pretrain lunarlander" in str(exit_info.value.code)
+def test_play_without_checkpoint_says_how_to_get_one(tmp_path, capsys):
+    assert main(["play", "lunarlander", "--checkpoint", str(tmp_path / "missing.pt")]) == 2
+    line = one_line_error(capsys)
+    assert "dcsc pretrain lunarlander" in line and str(tmp_path / "missing.pt") in line
+
+
+def test_play_looks_where_run_looks(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    cfg = load_config(RECIPES / "shared_control_lunarlander.yaml")
+    assert main(["play", "lunarlander"]) == 2
+    assert str(checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])) in one_line_error(capsys)
 
 
 # -- checkpoints ----------------------------------------------------------------------
