@@ -193,7 +193,7 @@ def test_calibrated_unit_puts_the_median_uncertainty_at_half_confidence_and_spre
     g = torch.Generator().manual_seed(0)
     uncertainty = torch.exp(torch.randn(2000, generator=g)) * 1e-4  # dropout-sized variances
     raw = machine_confidence(uncertainty.double(), 0.6, 1.05)
-    assert raw.min() > 0.99  # read raw, b_m carries no signal
+    assert torch.quantile(raw, 0.1) > 0.99  # read raw, b_m carries no signal
     scale = calibrated_uncertainty_scale(uncertainty, 0.6, 1.05)
     b_m = machine_confidence(uncertainty.double() / scale, 0.6, 1.05)
     assert torch.quantile(b_m, 0.5).item() == pytest.approx(0.5, abs=1e-3)
