@@ -17,7 +17,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 
-from dcsc_torchrl.confidence import check_finite, check_in_range
+from dcsc_torchrl.confidence import check_finite, check_finite_every_frame, check_in_range
 
 
 def confidence_ratio(machine_confidence: torch.Tensor, human_confidence: torch.Tensor) -> torch.Tensor:
@@ -75,10 +75,24 @@ class Arbiter(TensorDictModuleBase):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         machine_key, human_key = self.in_keys[:2]
-        b_m = tensordict.get(machine_key)
-        b_h = tensordict.get(human_key)
-        check_finite(str(machine_key), b_m)
-        check_finite(str(human_key), b_h)
+        b_m = tensordict.get(machine_key, None)
+        b_h = tensordict.get(human_key, None)
+        name = type(self).__name__
+        if b_m is None:
+            raise KeyError(
+                f"{name} reads {machine_key!r}, which is missing: run the MCDropoutPolicy before the "
+                "arbiter (SharedPolicyModule does)"
+            )
+        if b_h is None:
+            raise KeyError(
+                f"{name} reads {human_key!r}, which is missing: add HumanConfidenceTransform to the env"
+            )
+        # range (NaN included) on the first call, every call with DCSC_CHECK_FINITE=1: a check
+        # reads its result on the host, a sync per frame on a GPU
+        if not getattr(self, "_inputs_checked", False) or check_finite_every_frame():
+            check_in_range(str(machine_key), b_m, 0.0, 1.0)
+            check_in_range(str(human_key), b_h, 0.0, 1.0)
+            self._inputs_checked = True
         ratio = confidence_ratio(b_m, b_h)
         beta = self.machine_share(ratio, tensordict)
         beta = beta.expand(*ratio.shape[:-1], self.dims)
@@ -160,8 +174,15 @@ class HULAArbiter(Arbiter):
         self.in_keys = [*self.in_keys[:2], uncertainty_key]
 
     def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
-        uncertainty = tensordict.get(self.uncertainty_key)
-        check_finite(str(self.uncertainty_key), uncertainty)
+        uncertainty = tensordict.get(self.uncertainty_key, None)
+        if uncertainty is None:
+            raise KeyError(
+                f"HULAArbiter reads {self.uncertainty_key!r}, which is missing: run the MCDropoutPolicy "
+                "before the arbiter (SharedPolicyModule does)"
+            )
+        if not getattr(self, "_uncertainty_checked", False) or check_finite_every_frame():
+            check_finite(str(self.uncertainty_key), uncertainty)
+            self._uncertainty_checked = True
         return (uncertainty <= self.threshold).to(ratio.dtype)
 
 

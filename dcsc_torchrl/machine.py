@@ -13,6 +13,7 @@ from torch import nn
 
 from dcsc_torchrl.confidence import (
     check_finite,
+    check_finite_every_frame,
     check_in_range,
     machine_confidence,
     mc_dropout_uncertainty,
@@ -29,6 +30,23 @@ _OUT_KEYS = {
 def dropout_layers(network: nn.Module) -> list[nn.Module]:
     """Returns the dropout layers of ``network`` (those MC dropout switches on)."""
     return [m for m in network.modules() if isinstance(m, _DROPOUT_TYPES)]
+
+
+def linear_widths(network: nn.Module) -> tuple[int | None, int | None]:
+    """``(input width, output width)`` of ``network`` where its layers say them, else None.
+
+    The input width is the first ``nn.Linear``'s ``in_features`` when the network (or its
+    first ``nn.Sequential`` child, recursively) starts with that layer; a network that
+    starts with anything else (e.g. a layer keeping the first n values) has no known input
+    width. The output width is the last ``nn.Linear``'s ``out_features`` (an MLP, maybe
+    followed by an activation).
+    """
+    first: nn.Module = network
+    while isinstance(first, nn.Sequential) and len(first) > 0:
+        first = first[0]
+    in_width = first.in_features if isinstance(first, nn.Linear) else None
+    linears = [m for m in network.modules() if isinstance(m, nn.Linear)]
+    return in_width, (linears[-1].out_features if linears else None)
 
 
 @contextmanager
@@ -80,6 +98,10 @@ class MCDropoutPolicy(TensorDictModuleBase):
             about 1 on every frame. :func:`calibrated_uncertainty_scale` picks the unit
             from frames seen (the experiments: the operator-alone runs, as HULA's
             threshold is). ``machine_uncertainty`` is written raw either way.
+        observation_size: the width of the observation (last dim of ``in_keys[0]``) the
+            network was built for; default: the first ``nn.Linear``'s input width, where
+            the network starts with one (see :func:`linear_widths`). A network that keeps
+            only the first n values would silently cut a wider observation: pass it.
         in_keys: the observation key(s) fed to ``network``.
         out_keys: where to write mean, uncertainty and confidence; defaults to
             ``["machine_probs" | "machine_action", "machine_uncertainty",
@@ -106,6 +128,7 @@ class MCDropoutPolicy(TensorDictModuleBase):
         delta2: float = 1.05,
         tau_inv: float = 0.0,
         uncertainty_scale: float = 1.0,
+        observation_size: int | None = None,
         in_keys: Sequence[NestedKey] = ("observation",),
         out_keys: Sequence[NestedKey] | None = None,
     ) -> None:
@@ -135,6 +158,32 @@ class MCDropoutPolicy(TensorDictModuleBase):
         self.out_keys = list(out_keys) if out_keys is not None else list(_OUT_KEYS[output])
         if len(self.out_keys) != 3:
             raise ValueError(f"out_keys must name 3 entries (mean, uncertainty, confidence), got {self.out_keys}")
+        in_width, self.output_size = linear_widths(network)
+        if observation_size is not None and (int(observation_size) != observation_size or observation_size < 1):
+            raise ValueError(f"observation_size must be an integer >= 1, got {observation_size!r}")
+        if observation_size is not None and in_width is not None and observation_size != in_width:
+            raise ValueError(
+                f"observation_size={observation_size} but the network's first layer reads {in_width} values"
+            )
+        self.observation_size = observation_size if observation_size is not None else in_width
+        """Observation width the network was built for (None: not known)."""
+        self._inputs_checked = False
+
+    def check_inputs(self, inputs: Sequence[torch.Tensor]) -> None:
+        """The checks of the first call (and of every call with ``DCSC_CHECK_FINITE=1``).
+
+        Raises:
+            ValueError: for an observation of the wrong width or with NaN / inf values.
+        """
+        key = self.in_keys[0]
+        width = inputs[0].shape[-1] if inputs[0].dim() else 1
+        if self.observation_size is not None and width != self.observation_size:
+            raise ValueError(
+                f"{key!r} has {width} values per frame but the machine network was built for "
+                f"{self.observation_size} (observation_size): the env and the checkpoint disagree"
+            )
+        for name, value in zip(self.in_keys, inputs, strict=True):
+            check_finite(str(name), value)
 
     def train(self, mode: bool = True) -> MCDropoutPolicy:
         super().train(mode)
@@ -150,10 +199,24 @@ class MCDropoutPolicy(TensorDictModuleBase):
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        inputs = [tensordict.get(key) for key in self.in_keys]
-        for key, value in zip(self.in_keys, inputs, strict=True):
-            check_finite(str(key), value)
-        mean, uncertainty = mc_dropout_uncertainty(self.sample(*inputs), tau_inv=self.tau_inv)
+        inputs = []
+        for key in self.in_keys:
+            value = tensordict.get(key, None)
+            if value is None:
+                raise KeyError(f"the machine reads {key!r}, which is missing from the TensorDict")
+            inputs.append(value)
+        # checked on the first call only (a host sync per frame otherwise), see check_finite_every_frame
+        check = not self._inputs_checked or check_finite_every_frame()
+        if check:
+            self.check_inputs(inputs)
+        samples = self.sample(*inputs)
+        if check:
+            check_finite(
+                f"the machine network's output ({self.output}, observation finite: look at its weights)",
+                samples,
+            )
+            self._inputs_checked = True
+        mean, uncertainty = mc_dropout_uncertainty(samples, tau_inv=self.tau_inv)
         confidence = machine_confidence(uncertainty / self.uncertainty_scale, self.lam, self.delta2)
         mean_key, uncertainty_key, confidence_key = self.out_keys
         tensordict.set(mean_key, mean)

@@ -12,7 +12,7 @@ from tensordict.nn import (
     TensorDictSequential,
 )
 from torch import nn
-from torchrl.data import Bounded, OneHot, TensorSpec
+from torchrl.data import Bounded, Composite, OneHot, TensorSpec
 from torchrl.modules import OneHotCategorical
 
 from dcsc_torchrl.arbiters import Arbiter
@@ -34,6 +34,11 @@ class PolicyBlend(nn.Module):
         self.register_buffer("high", None if high is None else torch.as_tensor(high))
 
     def forward(self, beta: torch.Tensor, machine: torch.Tensor, human: torch.Tensor) -> torch.Tensor:
+        if machine.shape[-1:] != human.shape[-1:]:  # a shape check: no host sync
+            raise ValueError(
+                f"the machine gives {machine.shape[-1]} action values per frame but the operator's "
+                f"human_action has {human.shape[-1]}: the action spec and the machine network disagree"
+            )
         human = human.to(machine.dtype)
         blended = beta * machine + (1 - beta) * human
         if self.low is not None:
@@ -63,6 +68,13 @@ class SharedPolicyModule(TensorDictSequential):
         action_spec: the environment's action spec (``OneHot`` or ``Bounded``).
         action_key: where the shared action is written.
         human_action_key: where the operator's action is read.
+        observation_spec: the env's observation spec (optional); with it, an observation
+            wider or narrower than the machine's ``observation_size`` is refused here,
+            at construction, rather than at the first frame.
+
+    The action sizes are checked at construction where the machine network's last
+    ``nn.Linear`` says its output size (:func:`~dcsc_torchrl.machine.linear_widths`),
+    otherwise at every call of the blend (a shape comparison, free).
 
     Examples:
         >>> import torch
@@ -87,6 +99,7 @@ class SharedPolicyModule(TensorDictSequential):
         *,
         action_key: str = "action",
         human_action_key: str = "human_action",
+        observation_spec: TensorSpec | None = None,
     ) -> None:
         mean_key, _, confidence_key = machine.out_keys
         if confidence_key != arbiter.in_keys[0]:
@@ -95,6 +108,21 @@ class SharedPolicyModule(TensorDictSequential):
                 f"machine writes it to {confidence_key!r}"
             )
         beta_key = arbiter.out_keys[1]
+        if isinstance(action_spec, OneHot | Bounded):
+            n_actions = action_spec.shape[-1]
+            if machine.output_size is not None and machine.output_size != n_actions:
+                raise ValueError(
+                    f"the action spec {type(action_spec).__name__}({n_actions}) does not match the machine "
+                    f"network, whose last layer gives {machine.output_size} values"
+                )
+        if observation_spec is not None and machine.observation_size is not None:
+            obs_key = machine.in_keys[0]
+            obs_spec = observation_spec[obs_key] if isinstance(observation_spec, Composite) else observation_spec
+            if obs_spec.shape[-1] != machine.observation_size:
+                raise ValueError(
+                    f"the env's {obs_key!r} has {obs_spec.shape[-1]} values but the machine network was "
+                    f"built for {machine.observation_size} (observation_size)"
+                )
         parts: OrderedDict[str, nn.Module] = OrderedDict(machine=machine, arbiter=arbiter)
         if isinstance(action_spec, OneHot):
             if machine.output != "probs":

@@ -16,11 +16,12 @@ from typing import Protocol, runtime_checkable
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.data import Bounded, Categorical, Composite, OneHot, Unbounded
 from torchrl.envs.transforms import Transform
 
 from dcsc_torchrl.confidence import (
     check_finite,
+    check_finite_every_frame,
     check_in_range,
     human_confidence,
     knowledge_update,
@@ -57,8 +58,20 @@ def _reset_mask(transform: Transform, tensordict: TensorDictBase, batch_shape: t
     return reset.reshape(*batch_shape, 1)
 
 
+def _checked_here(tensor: torch.Tensor) -> bool:
+    """Whether a per-frame check of ``tensor`` is cheap: on the host, or asked for."""
+    return tensor.device.type == "cpu" or check_finite_every_frame()
+
+
 class HumanOperatorTransform(Transform):
     """Writes the operator's decision keys on every frame (reset and step).
+
+    This is where the operator's answer enters, so it is checked here, on every frame
+    (the env's frames are on the host, where a check costs no device sync; on a device,
+    with ``DCSC_CHECK_FINITE=1``): the observation the operator is shown must be finite
+    (so a NaN from the env is named as such, not as a NaN RT), ``human_action`` must have
+    the action spec's shape, be finite (a NaN is never cast to an integer) and, for a
+    ``OneHot`` spec, be one-hot; ``human_rt`` finite and ``>= 0``.
 
     Args:
         operator: any :class:`HumanOperator`.
@@ -104,19 +117,39 @@ class HumanOperatorTransform(Transform):
     def _ask(self, tensordict: TensorDictBase, is_init: torch.Tensor) -> TensorDictBase:
         if not self._seeded:
             self.set_seed(self.seed)
+        for key in self.in_keys:
+            observation = tensordict.get(key, None)
+            if observation is not None and _checked_here(observation):
+                check_finite(f"the env's {key!r} (before the operator saw it)", observation)
         query = tensordict.copy()
         query.set("is_init", is_init)
         answer = self.operator(query)
         action_key, rt_key, decided_key = self.out_keys
+        operator = type(self.operator).__name__
+        for key in self.out_keys:
+            if answer.get(key, None) is None:
+                raise KeyError(f"the operator ({operator}) did not answer {key!r}")
         if self._action_shape_dtype is None:  # a spec lookup is slow: once, not every frame
             spec = self.parent.full_action_spec[self.action_key]
-            self._action_shape_dtype = (spec.shape, spec.dtype)
-        shape, dtype = self._action_shape_dtype
+            self._action_shape_dtype = (spec.shape, spec.dtype, isinstance(spec, OneHot))
+        shape, dtype, one_hot = self._action_shape_dtype
         action = answer.get(action_key)
         if action.shape != shape:
             raise ValueError(f"the operator's {action_key} has shape {tuple(action.shape)}, expected {tuple(shape)}")
+        if _checked_here(action):
+            if action.is_floating_point():
+                check_finite(f"the operator's {action_key} ({operator})", action)
+            if one_hot:
+                binary = (action == 0) | (action == 1)
+                rows = binary.all(-1) & (action.sum(-1) == 1)
+                if not bool(rows.all()):
+                    index = tuple(int(i) for i in (~rows).nonzero()[0])
+                    raise ValueError(
+                        f"the operator's {action_key} ({operator}) must be one-hot for a OneHot action spec "
+                        f"(one 1, the rest 0), got {action[index].tolist()} at batch index {index}"
+                    )
         rt = answer.get(rt_key)
-        check_finite(rt_key, rt)
+        check_finite(f"the operator's {rt_key} ({operator})", rt)
         if (rt < 0).any():
             raise ValueError(f"the operator's {rt_key} must be >= 0 seconds, got {rt.min().item()}")
         tensordict.set(action_key, action.to(dtype))
