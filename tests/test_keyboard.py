@@ -13,7 +13,16 @@ from torchrl.envs.utils import check_env_specs
 
 from dcsc_torchrl.checkpoint import save_checkpoint
 from dcsc_torchrl.humans import KeyboardPilot, NoDisplayError
-from dcsc_torchrl.humans.play import load_machine, main, make_play_env, make_policy, play
+from dcsc_torchrl.humans.play import (
+    PlayRecorder,
+    load_machine,
+    main,
+    make_learner,
+    make_play_env,
+    make_policy,
+    play,
+    play_config,
+)
 from dcsc_torchrl.networks import lunar_actor, lunar_critic
 from dcsc_torchrl.tasks import LUNAR_ID
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
@@ -207,7 +216,7 @@ def test_keyboard_pilot_passes_check_env_specs():
 # --- dcsc play ------------------------------------------------------------------------
 
 
-def play_session(machine):
+def play_session(machine, *, critic=None, out=None, episodes=1, events=list):
     clock = FakeClock()
     render_env = gym.make(LUNAR_ID, render_mode="rgb_array")
     screen = RecordingScreen()
@@ -216,15 +225,22 @@ def play_session(machine):
         screen=screen,
         clock=clock,
         time_source=clock.now,
-        events=list,
+        events=events,
         joystick=False,
     )
     env = make_play_env(render_env, pilot, HumanConfidenceTransform(), seed=0)
-    return play(env, make_policy(env, machine), pilot, episodes=1), screen
+    cfg = play_config()
+    policy = make_policy(env, machine, cfg)
+    learner = make_learner(policy, critic, cfg) if critic is not None else None
+    recorder = None
+    if out is not None:
+        recorder = PlayRecorder(out, "dcsc_centred" if machine is not None else "operator", "tester")
+    summaries = play(env, policy, pilot, episodes=episodes, learner=learner, rollout_length=5, recorder=recorder)
+    return summaries, screen, policy, learner
 
 
 def test_play_alone_flies_an_episode_and_shows_every_frame():
-    summaries, screen = play_session(machine=None)
+    summaries, screen, _, _ = play_session(machine=None)
     assert len(summaries) == 1 and summaries[0]["steps"] > 0
     assert len(screen.shown) == summaries[0]["steps"] + 1  # the reset frame and one per step
     frame, lines = screen.shown[-1]
@@ -233,13 +249,14 @@ def test_play_alone_flies_an_episode_and_shows_every_frame():
     assert "b_h (you)" in labels and "beta (machine share)" not in labels
 
 
-def test_play_with_dcsc_loads_the_machine_and_shows_both_confidences(tmp_path):
+def tiny_checkpoint(tmp_path):
     hidden, dropout = [16], 0.01
+    torch.manual_seed(0)
     state = {
         "actor": lunar_actor(hidden, dropout).state_dict(),
         "qvalue": lunar_critic(hidden, 4, obs_dims=9).state_dict(),
     }
-    path = save_checkpoint(
+    return save_checkpoint(
         tmp_path / "checkpoint.pt",
         task="lunarlander",
         payload={
@@ -247,10 +264,75 @@ def test_play_with_dcsc_loads_the_machine_and_shows_both_confidences(tmp_path):
             "state": state,
         },
     )
-    summaries, screen = play_session(machine=load_machine(path))
+
+
+def test_play_with_dcsc_loads_the_machine_and_shows_both_confidences(tmp_path):
+    actor, _ = load_machine(tiny_checkpoint(tmp_path))
+    summaries, screen, _, _ = play_session(machine=actor)
     assert len(summaries) == 1
     labels = [line.split(":")[0] for line in screen.shown[-1][1]]
     assert {"b_h (you)", "b_m (machine)", "beta (machine share)"} <= set(labels)
+
+
+def test_play_with_dcsc_learns_online_and_writes_the_simulated_runs_files(tmp_path):
+    import pandas as pd
+
+    actor, critic = load_machine(tiny_checkpoint(tmp_path))
+    critic_before = [p.detach().clone() for p in critic.parameters()]
+    out = tmp_path / "study"
+    summaries, _, policy, learner = play_session(machine=actor, critic=critic, out=out, episodes=2)
+    steps = sum(s["steps"] for s in summaries)
+    assert len(summaries) == 2 and len(learner.history) == steps // 5  # one update per 5 frames
+    assert any(h["theta"] != [0.0] for h in learner.history)  # theta starts at the yaml's 0 and moves
+    assert any((a != b).any() for a, b in zip(critic_before, critic.parameters(), strict=True))
+    episodes = pd.read_csv(out / "episodes.csv")
+    assert episodes[["method", "phase", "seed", "steps"]].values.tolist() == [
+        ["dcsc_centred", "play", 0, summaries[0]["steps"]], ["dcsc_centred", "play", 1, summaries[1]["steps"]]]
+    assert episodes["theta"].iloc[-1] == pytest.approx(float(policy["arbiter"].theta.detach()[0]))
+    trace = pd.read_csv(out / "trace.csv")
+    assert len(trace) == steps
+    for column in ("operator_action", "machine_action", "shared_action", "human_rt", "knowledge",
+                   "human_confidence", "machine_uncertainty", "machine_confidence", "beta"):
+        assert trace[column].notna().all(), column
+    assert trace.groupby("episode")["step"].max().tolist() == [s["steps"] for s in summaries]
+
+
+def test_play_alone_writes_the_files_with_empty_machine_columns(tmp_path):
+    import pandas as pd
+
+    summaries, _, _, _ = play_session(machine=None, out=tmp_path)
+    trace = pd.read_csv(tmp_path / "trace.csv")
+    assert len(trace) == summaries[0]["steps"] and (trace["beta"] == 0).all()
+    assert trace["machine_confidence"].isna().all() and trace["machine_action"].isna().all()
+    assert pd.read_csv(tmp_path / "episodes.csv")["method"].tolist() == ["operator"]
+
+
+def test_quitting_mid_episode_keeps_the_frames_flown(tmp_path):
+    import pandas as pd
+
+    queue = [pygame.event.Event(pygame.KEYDOWN, key=pygame.K_ESCAPE)]
+    frames = {"n": 0}
+
+    def events():  # Esc on the 13th frame
+        frames["n"] += 1
+        return [queue.pop()] if frames["n"] == 13 and queue else []
+
+    summaries, _, _, _ = play_session(machine=None, out=tmp_path, events=events)
+    assert summaries == []
+    assert len(pd.read_csv(tmp_path / "trace.csv")) == 12  # the reset frame asks too: 12 steps
+    assert not (tmp_path / "episodes.csv").exists()
+
+
+def test_play_with_a_display_that_does_not_answer_fails_with_one_line(monkeypatch):
+    # SDL falls back to its invisible offscreen driver when DISPLAY's server is not running
+    monkeypatch.delenv("SDL_VIDEODRIVER", raising=False)
+    monkeypatch.setenv("DISPLAY", ":99")
+    monkeypatch.setattr(pygame.display, "init", lambda: None)
+    monkeypatch.setattr(pygame.display, "set_mode", lambda size: None)
+    monkeypatch.setattr(pygame.display, "get_driver", lambda: "offscreen")
+    with pytest.raises(SystemExit, match=r"DISPLAY=:99 is set but no display server answers there") as stop:
+        main(["lunarlander", "--assist", "none"])
+    assert "\n" not in str(stop.value.code)
 
 
 def test_play_without_a_checkpoint_says_how_to_get_one(tmp_path):

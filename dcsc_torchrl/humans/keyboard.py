@@ -46,6 +46,7 @@ _TEXT_COLOUR = (255, 255, 255)
 _LINE_HEIGHT = 22
 
 _HINT = "use a simulated operator instead, e.g. SimulatedPilot.from_preset('expert')"
+_INVISIBLE_DRIVERS = ("offscreen", "dummy")
 
 
 class NoDisplayError(RuntimeError):
@@ -74,8 +75,10 @@ def open_window(size: tuple[int, int], caption: str) -> pygame.Surface:
 
     Raises:
         NoDisplayError: on Linux with none of ``DISPLAY``, ``WAYLAND_DISPLAY``,
-            ``SDL_VIDEODRIVER`` set, or when pygame cannot open a display; the message
-            says to use a simulated operator.
+            ``SDL_VIDEODRIVER`` set, when pygame cannot open a display, or when SDL
+            falls back to an invisible driver (``offscreen``, ``dummy``) that
+            ``SDL_VIDEODRIVER`` did not ask for (a ``DISPLAY`` whose server is not
+            running); the message says to use a simulated operator.
     """
     display_vars = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
     if sys.platform.startswith("linux") and not any(os.environ.get(v) for v in display_vars):
@@ -88,6 +91,17 @@ def open_window(size: tuple[int, int], caption: str) -> pygame.Surface:
         window = pygame.display.set_mode(size)
     except pygame.error as error:
         raise NoDisplayError(f"no display for the keyboard pilot ({error}); {_HINT}") from error
+    # SDL falls back to an invisible driver when the display named in DISPLAY does not
+    # answer: refuse it unless SDL_VIDEODRIVER asked for it (the headless tests do)
+    driver = pygame.display.get_driver()
+    asked = [d.strip() for d in os.environ.get("SDL_VIDEODRIVER", "").split(",") if d.strip()]
+    if driver in _INVISIBLE_DRIVERS and driver not in asked:
+        pygame.display.quit()
+        named = ", ".join(f"{v}={os.environ[v]}" for v in display_vars if os.environ.get(v)) or "no display"
+        raise NoDisplayError(
+            f"no display for the keyboard pilot: {named} is set but no display server answers there "
+            f"(SDL fell back to its invisible {driver!r} driver); start one or {_HINT}"
+        )
     pygame.display.set_caption(caption)
     return window
 

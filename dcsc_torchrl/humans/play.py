@@ -1,22 +1,35 @@
 """``dcsc play lunarlander``: fly TargetLunarLander yourself, alone or with DC-SC.
 
-    dcsc play lunarlander [--assist dcsc|none] [--checkpoint PATH] [--episodes N] [--seed S]
+    dcsc play lunarlander [--assist dcsc|none] [--checkpoint PATH] [--episodes N] [--seed S] [--out DIR]
 
 The frames of a ``render_mode="rgb_array"`` TargetLunarLander go to the
 :class:`~dcsc_torchrl.humans.KeyboardPilot`'s window. With ``--assist dcsc`` the
-pretrained machine (MC dropout, Eqs. 10, 13) shares control with you through the
-confidence arbiter (Eqs. 14-18), and b_h, b_m and beta are drawn live on screen; alone,
-your b_h (Eqs. 6, 9) and last RT are.
+pretrained machine (MC dropout, Eqs. 10, 13) shares control with you through the learned
+arbiter of the simulated runs (``arbiter.form`` of ``recipes/shared_control_lunarlander.yaml``),
+and theta and the Q critic learn online as in Algorithm 1, once every
+``online.rollout_length`` frames; b_h, b_m and beta are drawn live on screen. Alone, your
+b_h (Eqs. 6, 9) and last RT are.
+
+Every play writes what the simulated runs write, into ``--out`` (default
+``results/play/``): ``episodes.csv`` (one row per finished episode: method, phase
+``play``, seed, success, steps, return, theta after it, ...) and ``trace.csv`` (one row per
+frame: the actions of both partners, human_rt, knowledge, b_h, c_t, b_m, beta). Rows are
+appended, every few frames and on Ctrl-C, so a user study is a folder of CSVs, one
+``session`` per play.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
+import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
@@ -24,28 +37,34 @@ from torchrl.envs import Compose, GymWrapper, RewardSum, StepCounter, Transforme
 from torchrl.envs.libs.gym import default_info_dict_reader
 from torchrl.envs.utils import step_mdp
 
-from dcsc_torchrl.arbiters import ConfidenceArbiter
 from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.humans.evaluate import operator_only_policy
 from dcsc_torchrl.humans.keyboard import KeyboardPilot, NoDisplayError
-from dcsc_torchrl.machine import MCDropoutPolicy
 from dcsc_torchrl.networks import machine_from_checkpoint
-from dcsc_torchrl.policy import SharedPolicyModule
+from dcsc_torchrl.runlog import RunLog
 from dcsc_torchrl.tasks import LUNAR_ID, LUNAR_INFO_KEYS
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
 
-DEFAULT_CHECKPOINT = Path("runs/pretrain_lunarlander/checkpoint.pt")
+TASK = "lunarlander"
+DEFAULT_CHECKPOINT = Path("runs/pretrain_lunarlander/seed0/checkpoint.pt")
+DEFAULT_OUT = Path("results/play")
+CONFIG_NAME = "shared_control_lunarlander.yaml"
+PHASE = "play"
 _STATUS_KEYS = (
     ("human_confidence", "b_h (you)"),
     ("machine_confidence", "b_m (machine)"),
     ("beta", "beta (machine share)"),
     ("human_rt", "your last RT [s]"),
 )
+EPISODE_COLUMNS = ["task", "operator", "pretrain_seed", "method", "phase", "group", "seed", "path_length",
+                   "return", "steps", "success", "hula_threshold", "session", "episode", "theta", "updates"]
+"""``episodes.csv``'s columns: those of the simulated runs, then the play's own."""
+_MACHINE_KEYS = ("machine_uncertainty", "machine_confidence", "confidence_ratio")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dcsc play", description=__doc__.split("\n\n")[0])
-    parser.add_argument("task", choices=["lunarlander"])
+    parser.add_argument("task", choices=[TASK])
     parser.add_argument(
         "--assist",
         choices=["dcsc", "none"],
@@ -56,22 +75,33 @@ def build_parser() -> argparse.ArgumentParser:
         "--checkpoint",
         type=Path,
         default=DEFAULT_CHECKPOINT,
-        help="LunarLander pretraining checkpoint (for --assist dcsc)",
+        help=f"LunarLander pretraining checkpoint (for --assist dcsc; default {DEFAULT_CHECKPOINT})",
     )
-    parser.add_argument("--episodes", type=int, default=3)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--episodes", type=int, default=3, help="episodes to fly (default 3)")
+    parser.add_argument("--seed", type=int, default=0, help="episode i plays scenario seed + i (default 0)")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
+                        help=f"folder of episodes.csv and trace.csv, appended to (default {DEFAULT_OUT})")
+    parser.add_argument("--participant", default="person",
+                        help="the operator column of the CSVs (a participant id in a user study)")
     return parser
 
 
-def load_machine(path: Path) -> nn.Module:
-    """The pretrained LunarLander actor, or a FileNotFoundError that says how to get one."""
+def play_config() -> DictConfig:
+    """The parameters of the simulated LunarLander runs (confidences, machine, arbiter, Algorithm 1)."""
+    from dcsc_torchrl.cli import recipes_dir
+    from dcsc_torchrl.config import load_config
+
+    return load_config(recipes_dir() / CONFIG_NAME)
+
+
+def load_machine(path: Path) -> tuple[nn.Module, nn.Module]:
+    """The pretrained LunarLander actor and Q critic, or a FileNotFoundError that says how to get them."""
     if not Path(path).is_file():
         raise FileNotFoundError(
             f"no LunarLander checkpoint at {path}: run `dcsc pretrain lunarlander` first, "
             "pass --checkpoint PATH, or fly alone with --assist none"
         )
-    actor, _ = machine_from_checkpoint(load_checkpoint(path, task="lunarlander"), "lunarlander")
-    return actor
+    return machine_from_checkpoint(load_checkpoint(path, task=TASK), TASK)
 
 
 def make_play_env(
@@ -86,13 +116,34 @@ def make_play_env(
     return env
 
 
-def make_policy(env: TransformedEnv, machine: nn.Module | None) -> TensorDictModuleBase:
-    """DC-SC's shared policy around ``machine``, or the pilot alone when ``machine`` is None."""
+def assist_method(cfg: DictConfig) -> str:
+    """The method name of the learned arbiter the config's ``arbiter.form`` picks."""
+    from dcsc_torchrl.experiment import LEARNED_FORMS
+
+    return next(method for method, form in LEARNED_FORMS.items() if form == cfg.arbiter.form)
+
+
+def make_policy(env: TransformedEnv, machine: nn.Module | None, cfg: DictConfig | None = None) -> TensorDictModuleBase:
+    """DC-SC's shared policy around ``machine`` (as the simulated runs build it), or the pilot alone."""
     if machine is None:
         return operator_only_policy()
-    return SharedPolicyModule(
-        MCDropoutPolicy(machine, output="probs"), ConfidenceArbiter(), env.action_spec
-    )
+    from dcsc_torchrl.experiment import build_policy, make_arbiter
+
+    cfg = play_config() if cfg is None else cfg
+    method = assist_method(cfg)
+    form = cfg.arbiter[cfg.arbiter.form]
+    arbiter = make_arbiter(method, TASK, theta_init=form.theta_init, gain=cfg.arbiter.centred.gain,
+                           hula_threshold=None)
+    return build_policy(machine, arbiter, TASK, cfg, env.full_action_spec["action"])
+
+
+def make_learner(policy: TensorDictModuleBase, critic: nn.Module, cfg: DictConfig) -> Any:
+    """Algorithm 1's online learner (theta and the critic) with the simulated runs' settings."""
+    from dcsc_torchrl.experiment import OnlineLearner
+
+    online = cfg.online
+    return OnlineLearner(policy, critic, theta_lr=online.theta_lr, critic_lr=online.critic_lr, gamma=online.gamma,
+                         tau=online.tau)
 
 
 def status_lines(tensordict: TensorDictBase) -> list[str]:
@@ -104,49 +155,165 @@ def status_lines(tensordict: TensorDictBase) -> list[str]:
     ]
 
 
-@torch.no_grad()
+def _cell(value: Any) -> Any:
+    """A CSV cell: NaN (no machine in the loop) as an empty cell."""
+    return None if isinstance(value, float) and math.isnan(value) else value
+
+
+class PlayRecorder:
+    """Appends a play's frames to ``trace.csv`` and its episodes to ``episodes.csv`` in ``out``.
+
+    Trace rows are formatted by the simulated runs' own :func:`~dcsc_torchrl.experiment._trace_rows`;
+    without a machine (``--assist none``) the machine's columns are empty. Frames are
+    buffered and written every :meth:`flush` (the play calls it every few frames, at each
+    episode's end and on the way out, Ctrl-C included).
+
+    Args:
+        out: the output folder (created).
+        method: ``episodes.csv``'s method (``dcsc``, ``dcsc_centred`` or ``operator``).
+        participant: the operator column.
+        pretrain_seed: the machine's pretraining seed, where known.
+    """
+
+    def __init__(self, out: Path, method: str, participant: str, pretrain_seed: int | None = None) -> None:
+        self.out = Path(out)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.base = {"task": TASK, "operator": participant, "pretrain_seed": pretrain_seed, "method": method,
+                     "phase": PHASE}
+        self.session = time.strftime("%Y%m%dT%H%M%S")
+        self.episodes = RunLog(self.out / "episodes.csv", EPISODE_COLUMNS)
+        self.trace: RunLog | None = None
+        self._pending: list[dict[str, Any]] = []
+
+    def frame(self, tensordict: TensorDictBase, *, seed: int, episode: int, step: int) -> None:
+        """Buffers one frame (the TensorDict after ``env.step``, ``next`` included)."""
+        from dcsc_torchrl.experiment import _trace_rows
+
+        frame = tensordict.copy()  # shallow: the keys set below stay here
+        machine = "machine_probs" in frame.keys()
+        if not machine:  # the operator alone: no machine output to show
+            nan = torch.full((1,), math.nan)
+            for key in _MACHINE_KEYS:
+                frame.set(key, nan)
+            frame.set("beta", torch.zeros(1))
+            frame.set("machine_probs", frame.get("human_action").float())
+        row = _trace_rows(frame.unsqueeze(0), TASK)[0]
+        row["step"] = step
+        if not machine:
+            row["machine_action"] = None
+        self._pending.append({**self.base, "seed": seed, "session": self.session, "episode": episode,
+                              **{key: _cell(value) for key, value in row.items()}})
+
+    def flush(self) -> None:
+        """Writes the buffered frames to ``trace.csv``."""
+        for row in self._pending:
+            if self.trace is None:
+                self.trace = RunLog(self.out / "trace.csv", list(row))
+            self.trace.append(row)
+        self._pending.clear()
+
+    def episode(self, summary: dict[str, Any]) -> None:
+        """Writes one finished episode's row (and the frames buffered so far)."""
+        self.flush()
+        row = {**self.base, "group": 0, "path_length": None, "hula_threshold": None, "session": self.session,
+               **summary}
+        self.episodes.append({key: _cell(value) for key, value in row.items()})
+
+
 def play(
-    env: TransformedEnv, policy: TensorDictModuleBase, pilot: KeyboardPilot, episodes: int
-) -> list[dict[str, float]]:
-    """Flies ``episodes`` episodes (fewer if the pilot quits); one summary dict per episode."""
-    summaries = []
-    for _ in range(episodes):
-        td = env.reset()
-        while True:
-            td = policy(td)
-            pilot.status = status_lines(td)
-            td = env.step(td)
-            step = td.get("next")
-            if pilot.quit_requested:
-                return summaries
-            if step.get("done").any():
-                break
-            td = step_mdp(td)
-        summaries.append(
-            {
+    env: TransformedEnv,
+    policy: TensorDictModuleBase,
+    pilot: KeyboardPilot,
+    episodes: int,
+    *,
+    seed: int = 0,
+    learner: Any | None = None,
+    rollout_length: int = 5,
+    recorder: PlayRecorder | None = None,
+) -> list[dict[str, Any]]:
+    """Flies ``episodes`` episodes (fewer if the pilot quits); one summary dict per finished episode.
+
+    Episode ``i`` plays scenario ``seed + i`` (the pad the simulated runs draw for that
+    seed). With a ``learner`` (an :class:`~dcsc_torchrl.experiment.OnlineLearner`), every
+    ``rollout_length`` frames are handed to it as a batch ``[1, rollout_length]``
+    (Algorithm 1: theta and the critic learn while the person flies). With a
+    ``recorder``, every frame and every finished episode is written.
+    """
+    summaries: list[dict[str, Any]] = []
+    rollout: list[TensorDictBase] = []
+    try:
+        for episode in range(episodes):
+            env.set_seed(seed + episode)
+            with torch.no_grad():
+                td = env.reset()
+            step_index = 0
+            while True:
+                with torch.no_grad():
+                    td = policy(td)
+                    pilot.status = status_lines(td)
+                    td = env.step(td)
+                step_index += 1
+                step = td.get("next")
+                if recorder is not None:
+                    recorder.frame(td, seed=seed + episode, episode=episode, step=step_index)
+                if learner is not None:
+                    rollout.append(td.clone())
+                    if len(rollout) == rollout_length:
+                        learner(torch.stack(rollout).unsqueeze(0))
+                        rollout.clear()
+                        if recorder is not None:
+                            recorder.flush()
+                if pilot.quit_requested:
+                    return summaries
+                if step.get("done").any():
+                    break
+                with torch.no_grad():
+                    td = step_mdp(td)
+            summary = {
+                "seed": seed + episode,
+                "episode": episode,
                 "success": bool(step.get("success").any()),
                 "return": step.get("episode_reward").item(),
-                "steps": step.get("step_count").item(),
+                "steps": int(step.get("step_count").item()),
             }
-        )
+            if learner is not None:
+                summary["theta"] = float(policy["arbiter"].theta.detach().reshape(-1)[0])
+                summary["updates"] = len(learner.history)
+            summaries.append(summary)
+            if recorder is not None:
+                recorder.episode(summary)
+    finally:
+        if recorder is not None:
+            recorder.flush()
     return summaries
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of ``dcsc play`` (``argv`` = ``["lunarlander", *options]``)."""
     args = build_parser().parse_args(argv)
-    confidence = HumanConfidenceTransform()
+    cfg = play_config()
+    confidence = HumanConfidenceTransform(**cfg.human)
     try:
-        machine = load_machine(args.checkpoint) if args.assist == "dcsc" else None
+        networks = load_machine(args.checkpoint) if args.assist == "dcsc" else None
         render_env = gym.make(LUNAR_ID, render_mode="rgb_array")
         pilot = KeyboardPilot(frame_source=render_env.render, t_d=confidence.t_d)
     except (FileNotFoundError, NoDisplayError) as error:
         raise SystemExit(f"dcsc play: {error}") from error
     env = make_play_env(render_env, pilot, confidence, args.seed)
+    machine, critic = networks if networks is not None else (None, None)
+    policy = make_policy(env, machine, cfg)
+    learner = make_learner(policy, critic, cfg) if machine is not None else None
+    method = assist_method(cfg) if machine is not None else "operator"
+    recorder = PlayRecorder(args.out, method, args.participant)
     print("arrow keys (or W/A/D): up = main engine, left/right = side engines; Esc quits")
-    for episode, summary in enumerate(play(env, make_policy(env, machine), pilot, args.episodes)):
+    try:
+        summaries = play(env, policy, pilot, args.episodes, seed=args.seed, learner=learner,
+                         rollout_length=int(cfg.online.rollout_length), recorder=recorder)
+    finally:
+        pilot.close()
+    for summary in summaries:
         outcome = "landed on the pad" if summary["success"] else "no landing"
-        print(
-            f"episode {episode}: {outcome}, return {summary['return']:.1f}, {summary['steps']} steps"
-        )
-    pilot.close()
+        theta = f", theta {summary['theta']:.3f}" if "theta" in summary else ""
+        print(f"episode {summary['episode']}: {outcome}, return {summary['return']:.1f}, "
+              f"{summary['steps']} steps{theta}")
+    print(f"results in {recorder.out} (episodes.csv, trace.csv)")
