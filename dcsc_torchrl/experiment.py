@@ -362,10 +362,12 @@ PHASES = ("operator_alone", "collaboration", "validation")
 
 
 def scenario_seeds(phase: str, cfg: DictConfig) -> list[int]:
-    """The scenario seeds of a protocol phase: validation 0..N-1, the others in ranges of their own."""
+    """The scenario seeds of a protocol phase: validation ``first_validation_seed`` + 0..N-1 (0..49 in
+    the experiments), the operator-alone and collaboration runs in ranges of their own."""
     protocol = cfg.protocol
     if phase == "validation":
-        return list(range(protocol.validation_scenarios))
+        first = protocol.first_validation_seed
+        return list(range(first, first + protocol.validation_scenarios))
     if phase == "operator_alone":
         return list(range(10_000, 10_000 + protocol.operator_runs))
     if phase == "collaboration":
