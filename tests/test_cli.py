@@ -15,7 +15,6 @@ import signal
 import stat
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pandas as pd
@@ -343,12 +342,18 @@ def test_building_an_env_logs_no_torchrl_info(monkeypatch):
 
 
 def test_ctrl_c_exits_130_with_one_line(tmp_path):
+    """SIGINT while ``dcsc run`` pretrains its missing machine: exit 130, one line, no traceback."""
     process = subprocess.Popen([sys.executable, "-m", "dcsc_torchrl.cli", "run", "lunarlander", "--quick",
                                 f"pretrain.out_dir={tmp_path / 'pre'}", "--out", str(tmp_path / 'res')],
                                stderr=subprocess.PIPE, text=True, cwd=tmp_path)
-    time.sleep(2.0)  # inside main by then: importing torch, checking the config or pretraining
-    process.send_signal(signal.SIGINT)
-    _, err = process.communicate(timeout=120)
+    seen = []
+    for line in process.stderr:  # wait until it is working, then press Ctrl-C
+        seen.append(line)
+        if "pretraining seed 0" in line:
+            process.send_signal(signal.SIGINT)
+            break
+    rest = process.communicate(timeout=120)[1]
+    err = "".join(seen) + rest
     assert process.returncode == 130, err
     assert "Traceback" not in err and err.strip().splitlines()[-1] == "dcsc: interrupted"
 
