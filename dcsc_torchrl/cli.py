@@ -3,7 +3,7 @@
     dcsc pretrain {lunarlander,uav} [--quick] [--resume] [--out DIR] [key=value ...]
     dcsc run {lunarlander,uav} [--quick] [--out DIR] [--methods M ...] [--operators P ...] [--fresh] [key=value ...]
     dcsc sweep [--quick] [--out DIR] [--address ADDR] [--fresh] [key=value ...]
-    dcsc reproduce [--quick] [--results DIR] [key=value ...]
+    dcsc reproduce [--quick] [--results DIR] [--fresh] [key=value ...]
     dcsc evaluate [--results DIR]
     dcsc play lunarlander [--assist {dcsc,none}] [--checkpoint PATH] [--episodes N] [--seed S]
 
@@ -148,6 +148,8 @@ def add_reproduce_options(parser: argparse.ArgumentParser) -> argparse.ArgumentP
     parser.add_argument("--quick", action="store_true", help="the same at a tiny scale (about a minute)")
     parser.add_argument("--results", type=Path, default=None,
                         help="results root (default results/, results/quick with --quick)")
+    parser.add_argument("--fresh", action="store_true",
+                        help="delete the results of an earlier run of another config and start over")
     _overrides(parser, "protocol.max_steps=200 (given to both tasks)")
     return parser
 
@@ -212,7 +214,7 @@ def _evaluate(args: argparse.Namespace) -> Path:
 def _reproduce(args: argparse.Namespace) -> Path:
     from recipes.reproduce import reproduce
 
-    path = reproduce(args.results, quick=args.quick, overrides=args.overrides)
+    path = reproduce(args.results, quick=args.quick, overrides=args.overrides, fresh=args.fresh)
     _say(f"results in {path.parent}")
     return path
 

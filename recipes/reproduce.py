@@ -1,6 +1,6 @@
 """``make reproduce``: both experiments end to end, then one report (DESIGN §5).
 
-    dcsc reproduce [--quick] [--results DIR] [key=value ...]
+    dcsc reproduce [--quick] [--results DIR] [--fresh] [key=value ...]
 
 Pretrains every machine that has no checkpoint yet (A2C and DDPG, every pretraining
 seed), runs the shared-control protocol of both tasks for every operator preset, and
@@ -49,18 +49,24 @@ def evaluate(results: Path, wall_seconds: float | None = None) -> Path:
     return path
 
 
-def reproduce(results: Path | None = None, *, quick: bool = False, overrides: Sequence[str] = ()) -> Path:
-    """Pretraining (when missing), both protocols, the report; returns ``summary.md``."""
+def reproduce(results: Path | None = None, *, quick: bool = False, overrides: Sequence[str] = (),
+              fresh: bool = False) -> Path:
+    """Pretraining (when missing), both protocols, the report; returns ``summary.md``.
+
+    Cells finished by an earlier run of the same config are kept (``dcsc run``'s resume);
+    ``fresh`` deletes an earlier run's results first.
+    """
     results = results or Path("results/quick" if quick else "results")
     start = time.perf_counter()
     for task in TASKS:
-        shared_control([task, *(["--quick"] if quick else []), "--out", str(results), *overrides])
+        shared_control([task, *(["--quick"] if quick else []), *(["--fresh"] if fresh else []), "--out", str(results),
+                        *overrides])
     return evaluate(results, time.perf_counter() - start)
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
     args = add_reproduce_options(Parser(description=__doc__.split("\n\n")[0])).parse_args(argv)
-    return reproduce(args.results, quick=args.quick, overrides=args.overrides)
+    return reproduce(args.results, quick=args.quick, overrides=args.overrides, fresh=args.fresh)
 
 
 if __name__ == "__main__":
