@@ -1,4 +1,4 @@
-"""Pretrain the UAV machine: DDPG on IIFDS path planning (paper §6.1, Table A2; DESIGN §5).
+"""Pretrain the UAV machine: DDPG on IIFDS path planning (paper §6.1, Table A2).
 
 A TorchRL ``Collector`` over the batched UAV env (a fresh scenario per episode), DDPG with
 target actor and critic soft-updated by polyak averaging, Gaussian exploration noise

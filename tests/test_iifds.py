@@ -23,7 +23,7 @@ GOAL = torch.tensor([10.0, 10.0, 5.5], dtype=torch.float64)
 
 
 def _reference_matrix(p, goal, c, r, rho0, sigma0, tau):
-    """M of DESIGN §4 written out directly (generic position, no guards)."""
+    """M of the IIFDS written out directly (generic position, no guards)."""
     n = 2 * (p - c) / r**2
     gamma = float(((p - c) ** 2).sum() / r**2)
     d_s = float((p - c).norm()) - r

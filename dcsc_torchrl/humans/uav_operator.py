@@ -1,4 +1,4 @@
-"""A simulated UAV operator: foresees the obstacles, picks IIFDS coefficients (DESIGN §4c)."""
+"""A simulated UAV operator: foresees the obstacles, picks IIFDS coefficients."""
 
 from __future__ import annotations
 
@@ -8,7 +8,15 @@ from collections.abc import Sequence
 import torch
 from tensordict import TensorDictBase
 
-from dcsc_torchrl.humans.traits import PRESETS, OperatorTraits, SimulatedHuman
+from dcsc_torchrl.humans.traits import (
+    _GOLDEN,
+    PRESETS,
+    OperatorTraits,
+    SimulatedHuman,
+    _mix,
+    _shift_right,
+    _signed,
+)
 from envs.iifds import iifds_step
 from envs.uav import (
     ACTION_HIGH,
@@ -34,7 +42,10 @@ class SimulatedOperator(SimulatedHuman):
     IIFDS flow (:func:`envs.iifds.iifds_step`) forward ``horizon`` steps against the
     obstacles' predicted positions (:func:`envs.uav.obstacle_states` of the env's
     ``obstacle_params`` at ``time + h * DT``), batched over envs x candidates, and keeps
-    the best score::
+    the best score. Its foresight is imperfect: it sees each obstacle ``k`` moving with
+    the velocity error ``e_k ~ N(0, lookahead_noise^2 I)`` (m/s), redrawn at every
+    decision, so the centre it predicts ``s`` seconds ahead is ``c_k(t + s) + e_k s``,
+    off by ``lookahead_noise * s * sqrt(3)`` on average: the farther ahead, the worse::
 
         score = progress - clearance_weight * max(0, clearance_margin - clearance)
                 - collision_penalty * failed
@@ -51,6 +62,8 @@ class SimulatedOperator(SimulatedHuman):
         traits: the operator's traits (default: the ``expert`` preset).
         grid: the candidate actions, ``[G, 3]`` in ``[0, 3]`` (default :data:`DEFAULT_GRID`).
         horizon: rollout steps (of ``DT`` seconds) per candidate, >= 1.
+        lookahead_noise: standard deviation (m/s, per axis) of the velocity error of its
+            predictions, >= 0; 0 is perfect foresight.
         collision_penalty: score lost by a rollout that collides or leaves the arena.
         clearance_margin: surface distance below which clearance costs score.
         clearance_weight: score per unit of clearance below the margin.
@@ -72,10 +85,11 @@ class SimulatedOperator(SimulatedHuman):
         traits: OperatorTraits | None = None,
         *,
         grid: Sequence[Sequence[float]] | torch.Tensor | None = None,
-        horizon: int = 15,
+        horizon: int = 30,
+        lookahead_noise: float = 0.2,
         collision_penalty: float = 100.0,
-        clearance_margin: float = 1.0,
-        clearance_weight: float = 2.0,
+        clearance_margin: float = 1.5,
+        clearance_weight: float = 4.0,
         near: float = 2.0,
     ) -> None:
         super().__init__(PRESETS["expert"] if traits is None else traits, frame_seconds=DT)
@@ -86,6 +100,8 @@ class SimulatedOperator(SimulatedHuman):
             raise ValueError(f"grid actions must lie in [0, {ACTION_HIGH}]")
         if horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
+        if not lookahead_noise >= 0:
+            raise ValueError(f"lookahead_noise must be >= 0, got {lookahead_noise}")
         if not near > 0:
             raise ValueError(f"near must be > 0, got {near}")
         self.grid = grid
@@ -95,7 +111,35 @@ class SimulatedOperator(SimulatedHuman):
         self.clearance_margin = float(clearance_margin)
         self.clearance_weight = float(clearance_weight)
         self.near = float(near)
-        self.in_keys = ("position", "goal", "time", "obstacle_params")
+        self.lookahead_noise = float(lookahead_noise)
+        self._noise_key = 0
+        self.in_keys = ("position", "goal", "time", "obstacle_params", "scenario_seed")
+
+    def reset(self, seed: int | None) -> None:
+        """Re-seeds the decision streams and the prediction errors (``None``: a fresh seed)."""
+        if seed is None:
+            seed = int(torch.randint(2**62, ()))
+        super().reset(seed)
+        self._noise_key = int(_mix(torch.tensor(_signed((int(seed) + 1) % (1 << 64)))))
+
+    def prediction_error(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The velocity error ``e [N, K, 3]`` of each obstacle's prediction (m/s).
+
+        A hash of (operator seed, scenario seed, frame), so the same decision sees the same
+        error in any batch, and a decision made on a delayed observation sees the error of
+        that observation's frame.
+        """
+        params = tensordict.get("obstacle_params")
+        n_envs, n_obstacles = params.shape[0], params.shape[-2]
+        frame = torch.round(tensordict.get("time").reshape(n_envs) / DT).long()
+        seed = tensordict.get("scenario_seed").reshape(n_envs).long()
+        key = _mix(self._noise_key + _GOLDEN * _mix(seed + _GOLDEN * frame))
+        draw = torch.arange(2 * n_obstacles * 3, device=params.device)
+        bits = _mix(key.unsqueeze(-1) + _GOLDEN * (draw + 1))
+        u = 1.0 - _shift_right(bits, 11).to(torch.float64) * 2.0**-53  # (0, 1]
+        u1, u2 = u.reshape(n_envs, 2, n_obstacles, 3).unbind(1)
+        z = torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * torch.pi * u2)
+        return (self.lookahead_noise * z).to(params.dtype)
 
     def score(self, tensordict: TensorDictBase) -> torch.Tensor:
         """Scores of every grid action for every env of a flat batch, ``[N, G]``."""
@@ -107,6 +151,10 @@ class SimulatedOperator(SimulatedHuman):
         steps = torch.arange(self.horizon + 1, device=device, dtype=now.dtype)
         # obstacles at time + h DT for h = 0..horizon: [N, H+1, K, 3] and [N, H+1, K]
         centres, velocities, radii = obstacle_states(params.unsqueeze(1), now + DT * steps)
+        if self.lookahead_noise > 0:
+            error = self.prediction_error(tensordict).unsqueeze(1)  # [N, 1, K, 3]
+            centres = centres + error * (DT * steps)[None, :, None, None]
+            velocities = velocities + error
         rho0, sigma0, tau = (column.expand(shape) for column in grid.T)
         goal = goal.unsqueeze(1).expand(*shape, 3)
         arena_low = torch.tensor(ARENA_LOW, device=device)
