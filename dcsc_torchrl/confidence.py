@@ -54,6 +54,10 @@ _BLOCK = 2048
 # Range of ln(a k) / ln(a c) whose kernel tables are cached (others are built per call), and
 # the largest table (entries) built at once.
 _M_CACHED = (-60.0, 40.0)
+# Range of ln(a k) / ln(a c) over every finite positive input (ln of the dtype's smallest
+# subnormal / largest value, plus ln a for a = -ln(eta) in [1.1e-16, 745]). Off the host, the
+# table covers it all, so no element's row has to be read back (a device sync) to pick it.
+_M_FULL = {torch.float64: (-783.0, 718.0), torch.float32: (-141.0, 96.0)}
 _MAX_TABLE = 2_000_000
 # Above this delta2 the machine integral is split at the kernel's step (``_steep_machine``):
 # the lattice's cost grows like delta2 (spacing 0.8 / delta2), the split rule's does not.
@@ -272,6 +276,11 @@ def _lattice_trapezoid(
     n_nodes = _n_nodes(h)
     i0 = torch.floor((_S_LO - m.detach()) / h)
     i0_long = i0.to(torch.long)
+    full_lo = math.floor((_S_LO - _M_FULL[dtype][1]) / h)
+    full_rows = math.floor((_S_LO - _M_FULL[dtype][0]) / h) - full_lo + 1
+    if _sync_free(device) and full_rows * n_nodes * len(kinds) <= _MAX_TABLE:
+        rows = _cached_node_rows(kinds, delta, h, full_lo, full_rows, dtype, device)
+        return _sum_rows(rows, m, i0, i0_long - full_lo, full_rows, which, h, n_nodes)
     lo, hi = (int(v) for v in torch.stack(torch.aminmax(i0_long)).tolist())
     std_lo = math.floor((_S_LO - _M_CACHED[1]) / h)
     std_hi = math.floor((_S_LO - _M_CACHED[0]) / h)
@@ -291,9 +300,21 @@ def _lattice_trapezoid(
                 out = out.index_put((idx,), _lattice_trapezoid(m[idx], kinds, delta, h, sub_which))
             return out
         rows = _build_node_rows(kinds, delta, h, lo, n_rows, dtype, device)
-    growth = _growth(h, dtype, device)
+    return _sum_rows(rows, m, i0, i0_long - lo, n_rows, which, h, n_nodes)
+
+
+def _sync_free(device: torch.device) -> bool:
+    """Whether the lattice uses the full-range table (no read-back): off the host."""
+    return device.type != "cpu"
+
+
+def _sum_rows(
+    rows: Tensor, m: Tensor, i0: Tensor, offset: Tensor, n_rows: int, which: Tensor | None, h: float,
+    n_nodes: int,
+) -> Tensor:
+    """The trapezoidal sums of :func:`_lattice_trapezoid` once its table ``rows`` is chosen."""
+    growth = _growth(h, m.dtype, m.device)
     a0 = m + h * i0  # s of the first node, in [_S_LO - h, _S_LO); carries m's gradient
-    offset = i0_long - lo
     if which is not None:
         offset = offset + n_rows * which
     block = max(16, _BLOCK * _n_nodes(_H) // n_nodes)  # same work array for finer lattices
@@ -542,7 +563,7 @@ def _steep_machine(m: Tensor, delta: float) -> Tensor:
     return torch.where(large, reject, 1.0 - accept)
 
 
-def machine_confidence(c: TensorLike, lam: float, delta2: float) -> Tensor:
+def machine_confidence(c: TensorLike, lam: float, delta2: float, *, validate: bool = True) -> Tensor:
     """Eq. 13 (with the prior of Eq. 11 and the cost of Eq. 12): machine confidence ``b_m(c)``.
 
     ``b_m(c) = 1 - ∫_{C>c} g(c, C) dmu(C) / ∫_{C>c} dmu(C)`` with
@@ -558,7 +579,10 @@ def machine_confidence(c: TensorLike, lam: float, delta2: float) -> Tensor:
     Args:
         c: decision uncertainty (Eq. 10), ``>= 0`` and finite, any shape.
         lam: base of the exponential prior over the risk tolerance ``C``, in ``(0, 1)``.
-        delta2: exponent of the marginal cost, ``> 1``.
+        delta2: exponent of the marginal cost, ``> 1`` and finite.
+        validate: check that ``c`` is ``>= 0`` and finite (reads the result on the host: a
+            device sync). The MC-dropout machine passes False on its frames: its ``c`` is a
+            sum of squares, checked finite on its first call (:func:`check_finite_every_frame`).
 
     Returns:
         ``b_m`` in ``[0, 1]``, same shape and floating dtype as ``c``; differentiable w.r.t.
@@ -573,7 +597,8 @@ def machine_confidence(c: TensorLike, lam: float, delta2: float) -> Tensor:
     """
     _check_machine_params(lam, delta2)
     c_t = _as_float_tensor("c", c)
-    _check_nonnegative_finite("c", c_t)
+    if validate:
+        _check_nonnegative_finite("c", c_t)
     out_dtype = c_t.dtype
     a = -math.log(lam)  # not log(1 / lam): 1 / lam overflows for a subnormal lam
     c_c = c_t.to(_compute_dtype(c_t)).reshape(-1)

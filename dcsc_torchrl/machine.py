@@ -217,7 +217,7 @@ class MCDropoutPolicy(TensorDictModuleBase):
             )
             self._inputs_checked = True
         mean, uncertainty = mc_dropout_uncertainty(samples, tau_inv=self.tau_inv)
-        confidence = machine_confidence(uncertainty / self.uncertainty_scale, self.lam, self.delta2)
+        confidence = machine_confidence(uncertainty / self.uncertainty_scale, self.lam, self.delta2, validate=False)
         mean_key, uncertainty_key, confidence_key = self.out_keys
         tensordict.set(mean_key, mean)
         tensordict.set(uncertainty_key, uncertainty)

@@ -296,6 +296,27 @@ def test_subnormal_eta_and_lambda_give_values_not_overflow_errors(tiny):
     assert b_h[-1] == 0 and b_m[-1] < 1e-10
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_full_range_table_of_devices_gives_the_host_values(monkeypatch, dtype):
+    # off the host the lattice uses one table for every finite input (no read-back to pick it)
+    tiny, big = torch.finfo(dtype).tiny * 1e-6 if dtype == torch.float32 else 5e-324, torch.finfo(dtype).max
+    c = torch.cat([torch.zeros(1, dtype=torch.float64), torch.logspace(-300, 300, 61, dtype=torch.float64)])
+    c = torch.cat([c.to(dtype), torch.tensor([tiny, big], dtype=dtype)])
+    c = c[torch.isfinite(c)]
+    host = [human_confidence(c, 0.1, 5e-324, 2.0), machine_confidence(c, 0.6, 1.05), machine_confidence(c, 0.6, 2.5),
+            human_confidence(c, 0.1, 1 - 1e-16, 2.0)]
+    monkeypatch.setattr(confidence, "_sync_free", lambda device: True)
+    device = [human_confidence(c, 0.1, 5e-324, 2.0), machine_confidence(c, 0.6, 1.05), machine_confidence(c, 0.6, 2.5),
+              human_confidence(c, 0.1, 1 - 1e-16, 2.0)]
+    for a, b in zip(host, device, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-15 if dtype == torch.float64 else 1e-7)
+
+
+def test_machine_confidence_without_validation_skips_only_the_check():
+    c = torch.tensor([0.0, 0.3, 7.0])
+    torch.testing.assert_close(machine_confidence(c, 0.6, 1.05, validate=False), machine_confidence(c, 0.6, 1.05))
+
+
 def _human(kw: dict) -> dict:
     return {"p": kw["p"], "eta": kw["eta"], "delta1": kw["delta1"]}
 
