@@ -21,11 +21,12 @@ import importlib
 from typing import Any
 
 _HOMES = {
-    "arbiters": ["Arbiter", "ConfidenceArbiter", "HULAArbiter", "HumanOnlyArbiter", "MachineOnlyArbiter",
-                 "confidence_ratio", "fusion_weight"],
+    "arbiters": ["Arbiter", "CentredConfidenceArbiter", "ConfidenceArbiter", "ConstantArbiter",
+                 "FrozenConfidenceArbiter", "HULAArbiter", "HumanOnlyArbiter", "MachineOnlyArbiter",
+                 "centred_fusion_weight", "confidence_ratio", "fusion_weight"],
     "confidence": ["human_confidence", "knowledge_update", "machine_confidence", "mc_dropout_uncertainty"],
     "losses": ["QCriticLoss", "ThetaLoss"],
-    "machine": ["MCDropoutPolicy"],
+    "machine": ["MCDropoutPolicy", "calibrated_uncertainty_scale"],
     "policy": ["PolicyBlend", "SharedPolicyModule"],
     "transforms": ["HumanConfidenceTransform", "HumanOperator", "HumanOperatorTransform"],
 }
