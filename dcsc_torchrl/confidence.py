@@ -449,7 +449,7 @@ def human_confidence(k: TensorLike, p: float, eta: float, delta1: float) -> Tens
 
     ``b_h(k) = ∫_{K>k} (k/K)^delta1 dmu(K) / ∫_{K>k} dmu(K)`` where ``mu`` puts mass ``p`` on
     ``K = inf`` (payoff 0) and density ``(1-p) eta^K ln(1/eta)`` on ``K > 0``. Substituting
-    ``K = k + u / a`` with ``a = ln(1/eta)`` and ``x = a k`` gives (DESIGN §2, docs/math.md)::
+    ``K = k + u / a`` with ``a = ln(1/eta)`` and ``x = a k`` gives (docs/math.md, section 2)::
 
         b_h = J(x) * (1-p) e^-x / ((1-p) e^-x + p),   J(x) = ∫_0^∞ e^-u (1 + u/x)^-delta1 du
             = (1-p) x E_delta1(x) / ((1-p) e^-x + p)
@@ -633,7 +633,7 @@ def mc_dropout_uncertainty(samples: Tensor, tau_inv: float = 0.0) -> tuple[Tenso
         c           = trace(Cov) = sum_d Var_d + d tau^-1
 
     The paper's ``Var[pi]`` is this ``d x d`` matrix; the scalar the confidence model needs
-    is its trace (DESIGN §2). The variances are computed from centred samples, so ``c >= 0``
+    is its trace (docs/math.md, section 3). The variances are computed from centred samples, so ``c >= 0``
     exactly.
 
     Args:

@@ -1,4 +1,4 @@
-"""The human side of DC-SC as environment transforms (DESIGN §3).
+"""The human side of DC-SC as environment transforms.
 
 From the agent's point of view the operator's action is part of what it observes, so
 the operator lives on the environment side:
@@ -30,7 +30,7 @@ from dcsc_torchrl.confidence import (
 
 @runtime_checkable
 class HumanOperator(Protocol):
-    """What an operator is (DESIGN §3).
+    """What an operator is.
 
     ``__call__`` receives the environment's TensorDict for the whole batch: every
     observation key the env writes (``observation`` holds the full state, the target

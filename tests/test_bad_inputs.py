@@ -190,3 +190,20 @@ def test_good_inputs_pass_every_check():
     )
     td.set("human_confidence", torch.full((1,), 0.3))
     assert policy(td)["action"].shape == (4,)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+def test_machine_and_arbiter_frames_after_the_first_do_not_sync_the_device(monkeypatch):
+    monkeypatch.delenv(CHECK_FINITE_ENV, raising=False)
+    device = torch.device("cuda")
+    machine = MCDropoutPolicy(net().to(device))
+    arbiter = ConfidenceArbiter().to(device)
+    td = TensorDict({"observation": torch.randn(8, 9, device=device),
+                     "human_confidence": torch.full((8, 1), 0.3, device=device)}, [8], device=device)
+    arbiter(machine(td.clone()))  # the first call checks (and syncs)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        arbiter(machine(td.clone()))
+    finally:
+        torch.cuda.set_sync_debug_mode("default")

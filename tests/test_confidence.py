@@ -116,7 +116,7 @@ def test_machine_confidence_matches_definition_of_eq13(lam, delta2, n):
 
 
 def test_human_confidence_closed_form_of_design_matches_definition():
-    # DESIGN §2: b_h = (1-p) x E_delta1(x) / ((1-p) e^-x + p), x = k ln(1/eta)
+    # docs/math.md, section 2: b_h = (1-p) x E_delta1(x) / ((1-p) e^-x + p), x = k ln(1/eta)
     p, eta, delta1 = PAPER_UAV["p"], PAPER_UAV["eta"], PAPER_UAV["delta1"]
     a = mp.log(1 / mp.mpf(eta))
     for k in (1e-6, 0.3, 4.0, 40.0):

@@ -1,4 +1,4 @@
-"""The keyboard pilot and `dcsc play` (DESIGN §4c), headless: SDL's dummy driver, posted keys, a fake clock."""
+"""The keyboard pilot and `dcsc play`, headless: SDL's dummy driver, posted keys, a fake clock."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A real person flies TargetLunarLander with the arrow keys or a joystick (DESIGN §4c).
+"""A real person flies TargetLunarLander with the arrow keys or a joystick.
 
 The pilot shows every frame at the env's 50 FPS (``pygame.time.Clock`` paces them) and
 measures a reaction time (RT) per decision: the time from a frame being shown to the
