@@ -56,7 +56,7 @@ RECIPES = Path(__file__).parent
 PRETRAIN = {"lunarlander": "pretrain_a2c_lunarlander", "uav": "pretrain_ddpg_uav"}
 TABLES = ("episodes", "trace", "theta", "calibration")
 RUN_RECORD = "run_config.yaml"
-OUTPUTS = ("episodes.csv", "trace.csv", "theta.csv", "calibration.csv", "summary.md", "failed_cells.csv", "cells", "fig_*.png")
+OUTPUTS = (*(f"{name}.csv" for name in TABLES), "summary.md", "failed_cells.csv", "cells", "fig_*.png")
 """What a run writes in ``<out>/<task>/`` (removed by ``--fresh``, with :data:`RUN_RECORD`)."""
 
 
@@ -151,8 +151,8 @@ def write_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: Path,
     start = time.perf_counter()
     result = run_cell(cell.task, cfg, cell.operator, cell.pretrain_seed, machine, critic, methods=methods,
                       trace=cell.trace)
-    for name, rows in zip(TABLES, (result.episodes, result.traces, result.theta, [result.calibration]),
-                          strict=True):
+    calibration = [result.calibration] if result.calibration else []
+    for name, rows in zip(TABLES, (result.episodes, result.traces, result.theta, calibration), strict=True):
         if rows:
             write_csv(rows, directory / f"{name}.csv")
         else:

@@ -67,6 +67,7 @@ def test_sweep_gives_the_rows_of_the_cells_run_one_after_another(grid_sweep, pre
                 tables["episodes"] += cell.episodes
                 tables["trace"] += cell.traces
                 tables["theta"] += cell.theta
+                tables["calibration"].append(cell.calibration)
     finally:
         torch.set_num_threads(threads)
     for name, rows in tables.items():
