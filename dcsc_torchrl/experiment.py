@@ -1,21 +1,26 @@
-"""The paper's protocol (DESIGN §5) for one experiment cell: calibrate, collaborate, validate.
+"""The paper's protocol for one experiment cell: calibrate, collaborate, validate.
 
 A *cell* is (task, operator preset, pretraining seed). Within it every method is the same
 pipeline — batched env + operator transforms + :class:`SharedPolicyModule` — with a
 different arbiter:
 
-==========  ==================================================================
-machine     :class:`MachineOnlyArbiter` (A2C / DDPG alone)
-operator    :class:`HumanOnlyArbiter` (the operator alone)
-hula        :class:`HULAArbiter` (threshold: 90th percentile of the machine's
-            uncertainty during the operator-alone runs, unless set)
-dcsc        :class:`ConfidenceArbiter`, theta and the critic updated online
-            (Algorithm 1) during collaboration and validation
-==========  ==================================================================
+============  ================================================================
+machine       :class:`MachineOnlyArbiter` (A2C / DDPG alone)
+operator      :class:`HumanOnlyArbiter` (the operator alone)
+hula          :class:`HULAArbiter` (threshold: 90th percentile of the machine's
+              uncertainty during the operator-alone runs, unless set)
+dcsc          :class:`ConfidenceArbiter` (Eq. 15 as printed), theta and the critic
+              updated online (Algorithm 1) during collaboration and validation
+dcsc_centred  :class:`CentredConfidenceArbiter`, learning the same way
+dcsc_frozen   the ``arbiter.form`` arbiter fed its confidences' collaboration means
+              (:class:`FrozenConfidenceArbiter`): what the confidences add
+constant      :class:`ConstantArbiter`, once per beta of ``arbiter.constant_betas``
+              (the best of them is the oracle reference of the report)
+============  ================================================================
 
 Each env of a batch is one scenario and plays exactly one recorded episode (its first);
 envs that finish early keep running (their frames still feed DC-SC's online updates)
-until every scenario of the batch is done.
+until every scenario of the batch is done. docs/architecture.md gives the reasons.
 """
 
 from __future__ import annotations
@@ -125,6 +130,9 @@ def make_env(task: str, cfg: DictConfig, preset: str, scenario_seeds: list[int],
                         transforms=transforms)
 
 
+THETA_OPTIMIZERS = {"sgd": torch.optim.SGD, "adam": torch.optim.Adam}
+
+
 class OnlineLearner:
     """Algorithm 1's online updates of theta (Eq. 19) and the critic, once per collected batch.
 
@@ -142,11 +150,14 @@ class OnlineLearner:
         gamma: discount factor.
         tau: soft-update rate of the target critic.
         updates_per_batch: gradient steps per collected batch (>= 1).
+        theta_optimizer: ``"sgd"`` (Algorithm 1 line 15 as printed: ``theta += alpha
+            grad J``) or ``"adam"`` (the same ascent direction, steps of about ``alpha`` in
+            theta's own units whatever the scale of Q: one step size serves both tasks).
     """
 
     def __init__(
         self, policy: SharedPolicyModule, critic: torch.nn.Module, *, theta_lr: float, critic_lr: float,
-        gamma: float, tau: float, updates_per_batch: int = 1,
+        gamma: float, tau: float, updates_per_batch: int = 1, theta_optimizer: str = "sgd",
     ) -> None:
         if int(updates_per_batch) != updates_per_batch or updates_per_batch < 1:
             raise ValueError(f"updates_per_batch must be an integer >= 1, got {updates_per_batch!r}")
@@ -162,7 +173,9 @@ class OnlineLearner:
             self.loss.make_value_estimator(ValueEstimators.TD0, gamma=gamma)
             critic_params = list(self.loss.value_network_params.values(True, True))
         self.targets = SoftUpdate(self.loss, tau=tau)
-        self.theta_optim = torch.optim.SGD([theta], lr=theta_lr)
+        if theta_optimizer not in THETA_OPTIMIZERS:
+            raise ValueError(f"theta_optimizer must be one of {sorted(THETA_OPTIMIZERS)}, got {theta_optimizer!r}")
+        self.theta_optim = THETA_OPTIMIZERS[theta_optimizer]([theta], lr=theta_lr)
         self.critic_optim = torch.optim.Adam(critic_params, lr=critic_lr)
         self.history: list[dict[str, Any]] = []
 
@@ -493,7 +506,8 @@ def run_cell(
         online = cfg.online
         learner = OnlineLearner(policy, copy.deepcopy(warm_critic), theta_lr=online.theta_lr,
                                 critic_lr=online.critic_lr, gamma=online.gamma, tau=online.tau,
-                                updates_per_batch=online.updates_per_batch)
+                                updates_per_batch=online.updates_per_batch,
+                                theta_optimizer=online.theta_optimizer)
         learner.critic_optim.load_state_dict(warm_optim)
         return learner
 
