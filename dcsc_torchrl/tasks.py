@@ -103,7 +103,7 @@ def make_uav_env(
 ) -> TransformedEnv:
     """``num_envs`` UAV scenarios as one native batched TorchRL env (+ transforms, RewardSum, StepCounter).
 
-    ``max_steps`` overrides the 500-step horizon, ``collision_reward`` the -10 of DESIGN §4.
+    ``max_steps`` overrides the 500-step horizon, ``collision_reward`` the env's -50.
     """
     base: EnvBase = UAVPathPlanningEnv(
         num_envs,

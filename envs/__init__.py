@@ -14,12 +14,16 @@ from gymnasium.envs.registration import register, registry
 from envs.iifds import iifds_step, iifds_velocity
 from envs.target_lunar_lander import TargetLunarLander, target_heuristic
 from envs.uav import (
+    BEST_CONSTANT_ACTION,
     N_OBSTACLE_PARAMS,
     N_OBSTACLES,
+    ObstacleFamily,
     ObstacleParam,
     UAVPathPlanningEnv,
     UAVPathPlanningGymEnv,
     UAVScenario,
+    best_constant_action,
+    constant_action_outcomes,
     obstacle_states,
     sample_scenario,
     sample_scenarios,
@@ -27,13 +31,17 @@ from envs.uav import (
 from envs.uav_plot import plot_uav_episode
 
 __all__ = [
+    "BEST_CONSTANT_ACTION",
     "N_OBSTACLES",
     "N_OBSTACLE_PARAMS",
+    "ObstacleFamily",
     "ObstacleParam",
     "TargetLunarLander",
     "UAVPathPlanningEnv",
     "UAVPathPlanningGymEnv",
     "UAVScenario",
+    "best_constant_action",
+    "constant_action_outcomes",
     "iifds_step",
     "iifds_velocity",
     "obstacle_states",

@@ -23,7 +23,7 @@ from dcsc_torchrl.humans import (
 from dcsc_torchrl.humans.traits import EnvStreams
 from dcsc_torchrl.tasks import make_lunar_env, make_uav_env
 from dcsc_torchrl.transforms import HumanOperatorTransform
-from envs.uav import N_OBSTACLE_PARAMS, ObstacleParam
+from envs.uav import DT, N_OBSTACLE_PARAMS, ObstacleParam
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "operators.md"
 
@@ -260,6 +260,7 @@ def uav_query(obstacles: list[tuple[tuple[float, float, float], float, float]]) 
             "goal": torch.tensor([[10.0, 0.0, 5.0]]),
             "time": torch.zeros(1, 1),
             "obstacle_params": params,
+            "scenario_seed": torch.zeros(1, 1, dtype=torch.int64),
             "is_init": torch.ones(1, 1, dtype=torch.bool),
         },
         [1],
@@ -267,7 +268,7 @@ def uav_query(obstacles: list[tuple[tuple[float, float, float], float, float]]) 
 
 
 def test_simulated_operator_avoids_the_candidates_that_collide():
-    operator = SimulatedOperator()
+    operator = SimulatedOperator(lookahead_noise=0.0)
     oncoming = uav_query([((3.0, 1.2, 5.0), 0.8, -2.0)])  # a sphere flying at the UAV
     scores = operator.score(oncoming)[0]
     assert (scores < -operator.collision_penalty / 2).any()
@@ -295,6 +296,26 @@ def test_simulated_operator_workload_grows_near_obstacles():
 def test_simulated_operator_rejects_a_bad_grid():
     with pytest.raises(ValueError, match="grid"):
         SimulatedOperator(grid=[[0.0, 1.0, 4.0]])
+    with pytest.raises(ValueError, match="lookahead_noise"):
+        SimulatedOperator(lookahead_noise=-0.1)
+
+
+def test_simulated_operator_look_ahead_error_is_a_velocity_error_of_the_set_size():
+    operator = SimulatedOperator(lookahead_noise=0.3)
+    operator.reset(0)
+    query = uav_query([((5.0, 40.0, 5.0), 1.0, 0.0)] * 4).expand(500).clone()
+    query["time"] = DT * torch.arange(500.0).unsqueeze(-1)  # 500 decisions, 500 frames
+    error = operator.prediction_error(query)
+    assert error.shape == (500, 4, 3)
+    assert error.std().item() == pytest.approx(0.3, rel=0.1)
+    assert error.mean().abs().item() < 0.05
+    # the same frame of the same scenario sees the same error; another frame another one
+    assert operator.prediction_error(query[:2]).equal(error[:2])
+    assert not error[0].equal(error[1])
+    # so a rollout's predicted centres drift off linearly with the look-ahead time
+    perfect = SimulatedOperator(lookahead_noise=0.0)
+    oncoming = uav_query([((3.0, 1.2, 5.0), 0.8, -2.0)])
+    assert not operator.score(oncoming).equal(perfect.score(oncoming))
 
 
 # --- through the transform, in TorchRL ----------------------------------------------

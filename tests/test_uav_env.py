@@ -16,17 +16,29 @@ from torchrl.envs.utils import check_env_specs
 import envs  # noqa: F401  (registers the ids)
 from envs.uav import (
     ARENA_HIGH,
+    BEST_CONSTANT_ACTION,
+    BEST_CONSTANT_SEEDS,
+    COLLISION_REWARD,
     DT,
     GOAL,
+    GOAL_REWARD,
+    HORIZON,
     N_OBSTACLE_PARAMS,
     N_OBSTACLES,
+    PROGRESS_REWARD,
+    THREAT_COST,
+    THREAT_MARGIN,
+    TIME_COST,
     ObstacleParam,
     UAVPathPlanningEnv,
     UAVScenario,
     _segment_point_distance,
+    best_constant_action,
+    constant_action_outcomes,
     obstacle_states,
     sample_scenario,
     sample_scenarios,
+    step_reward,
 )
 from envs.uav_plot import plot_uav_episode
 
@@ -99,7 +111,7 @@ def test_gym_id_reports_episode_info():
         obs, reward, terminated, truncated, info = env.step(np.array([2.0, 2.0, 2.0]))
     assert set(info) == {"success", "collision", "out_of_bounds", "path_length", "scenario_seed"}
     assert info["success"] or info["collision"] or truncated
-    assert info["path_length"] > 10.0
+    assert info["path_length"] > 1.0
 
 
 def test_gym_id_draws_reproducible_fresh_scenarios():
@@ -205,7 +217,9 @@ def test_constant_action_reaches_the_goal_when_no_obstacle_is_near():
     straight = float((START - torch.tensor(GOAL)).norm())
     assert last["path_length"].item() == pytest.approx(straight, rel=0.05)
     torch.testing.assert_close(last["position"], torch.tensor(GOAL))
-    assert last["reward"].item() == pytest.approx(3.0)  # at the goal the distance term is 0
+    # the progress terms add up to PROGRESS_REWARD exactly on arrival
+    expected = PROGRESS_REWARD + GOAL_REWARD - TIME_COST * rollout.shape[-1]
+    assert rollout["next", "reward"].sum().item() == pytest.approx(expected, abs=1e-3)
 
 
 def test_flying_into_an_obstacle_ends_with_a_collision():
@@ -216,7 +230,7 @@ def test_flying_into_an_obstacle_ends_with_a_collision():
     last = rollout[0, -1]["next"]
     assert last["collision"].item() and last["terminated"].item()
     assert not last["success"].item()
-    assert last["reward"].item() == -10.0
+    assert last["reward"].item() < COLLISION_REWARD + 1.0
     assert rollout.shape[-1] < 10
 
 
@@ -227,7 +241,7 @@ def test_leaving_the_arena_ends_with_out_of_bounds():
     last = rollout[0, -1]["next"]
     assert last["out_of_bounds"].item() and last["terminated"].item()
     assert not last["success"].item() and not last["collision"].item()
-    assert last["reward"].item() == -10.0
+    assert last["reward"].item() < COLLISION_REWARD + 1.0
     assert last["position"][0] > ARENA_HIGH[0]
 
 
@@ -251,15 +265,79 @@ def test_reward_adds_threat_and_distance_terms():
     position = out["position"][0]
     d_surface = float((position - centre).norm()) - 1.0
     assert 0.0 < d_surface < 0.4
+    progress = (path.norm() - (position - torch.tensor(GOAL)).norm()) / path.norm()
     expected = (
-        -float((position - torch.tensor(GOAL)).norm() / path.norm())
-        + (d_surface - 0.4) / (1.0 + 0.4)
-        - 0.3
+        PROGRESS_REWARD * float(progress) - TIME_COST - THREAT_COST * (1 - d_surface / 0.4)
     )
     assert out["reward"].item() == pytest.approx(expected, abs=1e-5)
     to_surface = out["observation"][0, :3]
     torch.testing.assert_close(to_surface.norm(), torch.tensor(d_surface), atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(out["observation"][0, 3:6], torch.tensor(GOAL) - position)
+
+
+def _scripted_return(waypoints: list[list[float]], steps: int, obstacle=None) -> float:
+    """Return of a flight along straight segments through ``waypoints`` in ``steps`` steps.
+
+    Scored by :func:`step_reward` as the env scores a step: the flight ends at the first
+    point inside ``obstacle`` (a collision) or at the goal (the last waypoint).
+    """
+    points = torch.tensor(waypoints)
+    lengths = (points[1:] - points[:-1]).norm(dim=-1)
+    cumulative = torch.cat([torch.zeros(1), lengths.cumsum(0)])
+    s = torch.linspace(0, float(cumulative[-1]), steps + 1)
+    segment = (torch.searchsorted(cumulative, s, right=True) - 1).clamp(0, len(lengths) - 1)
+    frac = ((s - cumulative[segment]) / lengths[segment]).unsqueeze(-1)
+    path = points[segment] + frac * (points[segment + 1] - points[segment])
+    goal, start = points[-1], points[0]
+    total = 0.0
+    for p, q in zip(path[:-1], path[1:], strict=True):
+        d_surface = torch.tensor([50.0])
+        if obstacle is not None:
+            d_surface = (q - obstacle[0]).norm(dim=-1, keepdim=True) - obstacle[1]
+        failed = bool(d_surface.min() <= 0)
+        success = bool((q - goal).norm() < 1e-4) and not failed
+        total += step_reward(
+            p, q, start, goal, d_surface, torch.tensor(failed), torch.tensor(success)
+        ).item()
+        if failed or success:
+            break
+    return total
+
+
+def test_reward_ranks_crashes_below_arrivals_and_faster_arrivals_higher():
+    start, goal = [0.5, 2.5, 5.5], list(GOAL)
+    line = torch.tensor(goal) - torch.tensor(start)
+    early = (torch.tensor(start) + 0.15 * line, 1.0)  # an obstacle near the start
+    late = (torch.tensor(start) + 0.85 * line, 1.0)  # an obstacle near the goal
+    detour = [start, [0.5, 10.0, 5.5], goal]
+    crash_early = _scripted_return([start, goal], 120, early)
+    crash_late = _scripted_return([start, goal], 120, late)
+    long_safe = _scripted_return(detour, 400)
+    short_safe = _scripted_return([start, goal], 120)
+    assert crash_early < crash_late < long_safe < short_safe
+    # the worst arrival (the whole horizon inside every threat zone) still beats the best
+    # failure (a crash a hair from the goal, with all the progress and no time cost)
+    worst_arrival = PROGRESS_REWARD + GOAL_REWARD - HORIZON * (TIME_COST + THREAT_COST)
+    best_failure = PROGRESS_REWARD + COLLISION_REWARD
+    assert best_failure < worst_arrival
+    hover, goal_point = torch.zeros(3), torch.ones(3)  # no progress: only time and threat
+    threat = step_reward(
+        hover, hover, -goal_point, goal_point,
+        torch.tensor([1e-3, THREAT_MARGIN / 2]), torch.tensor(False), torch.tensor(False),
+    )
+    assert threat.item() == pytest.approx(-TIME_COST - THREAT_COST * (1 - 1e-3 / THREAT_MARGIN))
+
+
+def test_calibrated_family_keeps_its_difficulty_for_the_best_constant_planner():
+    outcomes = constant_action_outcomes([BEST_CONSTANT_ACTION], range(50))
+    failure = 1.0 - outcomes["success"].float().mean().item()
+    assert failure >= 0.25
+
+
+@pytest.mark.slow
+def test_best_constant_action_is_found_on_its_own_seeds():
+    found = best_constant_action(BEST_CONSTANT_SEEDS)
+    torch.testing.assert_close(found, torch.tensor(BEST_CONSTANT_ACTION))
 
 
 def test_goal_counts_when_the_step_passes_it():
