@@ -282,7 +282,8 @@ def test_play_with_dcsc_learns_online_and_writes_the_simulated_runs_files(tmp_pa
     out = tmp_path / "study"
     summaries, _, policy, learner = play_session(machine=actor, critic=critic, out=out, episodes=2)
     steps = sum(s["steps"] for s in summaries)
-    assert len(summaries) == 2 and len(learner.history) == steps // 5  # one update per 5 frames
+    per_batch = play_config().online.updates_per_batch
+    assert len(summaries) == 2 and len(learner.history) == steps // 5 * per_batch  # a batch every 5 frames
     assert any(h["theta"] != [0.0] for h in learner.history)  # theta starts at the yaml's 0 and moves
     assert any((a != b).any() for a, b in zip(critic_before, critic.parameters(), strict=True))
     episodes = pd.read_csv(out / "episodes.csv")

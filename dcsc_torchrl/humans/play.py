@@ -143,7 +143,8 @@ def make_learner(policy: TensorDictModuleBase, critic: nn.Module, cfg: DictConfi
 
     online = cfg.online
     return OnlineLearner(policy, critic, theta_lr=online.theta_lr, critic_lr=online.critic_lr, gamma=online.gamma,
-                         tau=online.tau)
+                         tau=online.tau, updates_per_batch=online.updates_per_batch,
+                         theta_optimizer=online.theta_optimizer)
 
 
 def status_lines(tensordict: TensorDictBase) -> list[str]:
