@@ -191,24 +191,25 @@ class OnlineLearner:
             return self.loss.loss_theta(batch)[0]
         return self.loss.loss_actor(batch)[0]
 
-    def warm_up(self, frames: TensorDictBase, *, updates: int, batch_size: int, seed: int) -> float:
+    def warm_up(self, frames: TensorDictBase, *, updates: int, batch_size: int, lr: float, seed: int) -> float:
         """Fits the critic alone on recorded transitions (the operator-alone runs), theta untouched.
 
         The pretrained critic has never seen the task's target (the LunarLander machine is
-        pretrained on the centred pad); ``updates`` TD steps on minibatches of
-        ``batch_size`` frames drawn (with a generator seeded by ``seed``) from ``frames``
+        pretrained on the centred pad); ``updates`` TD steps (Adam at ``lr``) on minibatches
+        of ``batch_size`` frames drawn (with a generator seeded by ``seed``) from ``frames``
         give it a start on the operator's transitions before theta learns from it.
         Returns the last minibatch loss (``nan`` with no updates).
         """
         frames = frames.reshape(-1)
         generator = torch.Generator().manual_seed(seed)
+        optim = torch.optim.Adam(self.critic_optim.param_groups[0]["params"], lr=lr)
         loss = torch.tensor(float("nan"))
         for _ in range(updates):
             index = torch.randint(frames.shape[0], (min(batch_size, frames.shape[0]),), generator=generator)
             loss = self.critic_loss(frames[index])
-            self.critic_optim.zero_grad()
+            optim.zero_grad()
             loss.backward()
-            self.critic_optim.step()
+            optim.step()
             self.targets.step()
         return loss.item()
 
@@ -508,7 +509,6 @@ def run_cell(
                                 critic_lr=online.critic_lr, gamma=online.gamma, tau=online.tau,
                                 updates_per_batch=online.updates_per_batch,
                                 theta_optimizer=online.theta_optimizer)
-        learner.critic_optim.load_state_dict(warm_optim)
         return learner
 
     # 1. calibrate: everything the other phases need is known before any row is written
@@ -522,8 +522,8 @@ def run_cell(
     warm = OnlineLearner(policy_for("dcsc"), copy.deepcopy(critic_net), theta_lr=0.0,
                          critic_lr=cfg.online.critic_lr, gamma=cfg.online.gamma, tau=cfg.online.tau)
     warm.warm_up(alone.frames, updates=cfg.online.critic_warmup_updates, batch_size=cfg.online.warmup_batch_size,
-                 seed=run_seed(seed, pretrain_seed, "operator_alone", "critic"))
-    warm_critic, warm_optim = warm.critic, warm.critic_optim.state_dict()
+                 lr=cfg.online.warmup_lr, seed=run_seed(seed, pretrain_seed, "operator_alone", "critic"))
+    warm_critic = warm.critic
     calibration = {**base, "hula_threshold": threshold,
                    **confidence_signal(scale, alone.frames, warm.action_gap(alone.frames),
                                        cfg.machine.lam, cfg.machine.delta2)}
