@@ -97,8 +97,8 @@ def add_recipe_options(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
     parser.add_argument("--resume", action="store_true",
                         help="continue from the run's last checkpoint; refused if the config differs")
     parser.add_argument("--out", type=Path, default=None,
-                        help="run directory (default: <logger.out_dir>/seed<seed> with dcsc, logger.out_dir "
-                             "for the recipe script)")
+                        help="run directory (dcsc pretrain's default: <pretrain.out_dir>/seed<seed>/, where "
+                             "dcsc run reads it; the recipe script's: logger.out_dir)")
     _overrides(parser, "optim.lr=1e-3 train.episodes=100")
     return parser
 
@@ -185,7 +185,9 @@ def _pretrain(args: argparse.Namespace) -> Path:
 
     module = PRETRAIN_RECIPES[args.task]
     cfg = load_config(recipes_dir() / f"{module.rsplit('.', 1)[1]}.yaml", args.overrides, quick=args.quick)
-    out = args.out or checkpoint_path(cfg.logger.out_dir, cfg.seed).parent
+    # by default where `dcsc run` (same --quick) reads this seed's machine
+    protocol = load_config(recipes_dir() / f"shared_control_{args.task}.yaml", quick=args.quick)
+    out = args.out or checkpoint_path(protocol.pretrain.out_dir, cfg.seed).parent
     argv = [*(["--quick"] if args.quick else []), *(["--resume"] if args.resume else []), "--out", str(out),
             *args.overrides]
     importlib.import_module(module).main(argv)

@@ -377,3 +377,21 @@ def test_the_errors_shown_in_docs_cli_md_are_the_ones_printed(capsys, tmp_path, 
             code = exit_info.code
         assert code == 2, command
         assert one_line_error(capsys) == shown.strip(), command
+
+
+@pytest.mark.parametrize("quick", [False, True])
+def test_dcsc_pretrain_writes_where_dcsc_run_reads(quick, monkeypatch, capsys):
+    seen = {}
+
+    class Recipe:
+        @staticmethod
+        def main(argv):
+            seen["argv"] = argv
+
+    monkeypatch.setattr(cli.importlib, "import_module", lambda name: Recipe)
+    assert main(["pretrain", "uav", *(["--quick"] if quick else []), "seed=2"]) == 0
+    run_cfg = load_config(RECIPES / "shared_control_uav.yaml", quick=quick)
+    expected = checkpoint_path(run_cfg.pretrain.out_dir, 2)
+    argv = seen["argv"]
+    assert Path(argv[argv.index("--out") + 1]) == expected.parent and argv[-1] == "seed=2"
+    assert f"checkpoint in {expected}" in capsys.readouterr().err
