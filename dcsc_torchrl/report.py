@@ -112,6 +112,8 @@ def write_task_summary(results_dir: str | os.PathLike, task: str, main_operator:
 def constant_sweep(episodes: pd.DataFrame) -> pd.DataFrame:
     """Validation success and return per (operator, constant beta), pooled over pretraining seeds."""
     sweep = episodes[(episodes["phase"] == "validation") & (episodes["method"] == "constant")]
+    if sweep.empty:  # a run without the constant method has no constant_beta column
+        return pd.DataFrame(columns=["operator", "constant_beta", "success", "return"])
     return sweep.groupby(["operator", "constant_beta"])[["success", "return"]].mean().reset_index()
 
 
