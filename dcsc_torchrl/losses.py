@@ -20,7 +20,7 @@ class QCriticLoss(LossModule):
 
     ``y = r + gamma * (1 - terminated) * max_a Q'(s', a)`` with ``Q'`` a target copy of
     the critic (soft-updated with TorchRL's ``SoftUpdate(loss, tau=...)``), and
-    ``loss_qvalue = distance(Q(s, a_t), y)``. Used beside A2C in pretraining (DESIGN §5)
+    ``loss_qvalue = distance(Q(s, a_t), y)``. Trained beside A2C in pretraining (Table A1's off-policy entries)
     and, through :class:`ThetaLoss`, online in DC-SC.
 
     Args:

@@ -172,6 +172,10 @@ def evaluate(
     return first_episodes(rollout, extra_keys)
 
 
+RESUMABLE_CHANGES = ("logger.out_dir", "threads", "train.episodes", "train.stop_success", "train.stop_eval_episodes")
+"""Config keys a resumed run may change: where it writes, its threads, its budget."""
+
+
 class TrainingRun:
     """Run directory, CSV log, progress bar, checkpoints and resume of one training run.
 
@@ -219,12 +223,14 @@ class TrainingRun:
 
         Raises:
             ConfigError: resuming a checkpoint written with another config (the keys
-                that differ are named; ``logger.out_dir`` and ``threads`` may differ).
+                that differ are named; ``logger.out_dir``, ``threads`` and the budget,
+                ``train.episodes`` / ``train.stop_*``, may differ: resuming with a larger
+                budget trains the same machine further).
         """
         remove_stale_temp_files(self.checkpoint_path)
         if resume:
             data = load_checkpoint(self.checkpoint_path, task=self.task)
-            changed = config_diff(data.get("config", {}), to_plain(self.cfg), ignore=("logger.out_dir", "threads"))
+            changed = config_diff(data.get("config", {}), to_plain(self.cfg), ignore=RESUMABLE_CHANGES)
             if changed:
                 raise ConfigError(
                     f"cannot resume {self.checkpoint_path}: it was written with another config "

@@ -1,4 +1,4 @@
-"""Pretrain the LunarLander machine: A2C + a Q critic (paper §6.1, Table A1; DESIGN §5).
+"""Pretrain the LunarLander machine: A2C + a Q critic (paper §6.1, Table A1).
 
 A2C with GAE over batched TargetLunarLander envs (pad at the centre: the standard task).
 The actor is an MLP with dropout (MC dropout samples it later, Eq. 10) that sees the 8
@@ -21,8 +21,10 @@ from pathlib import Path
 
 import pandas as pd
 import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
-from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorSpec
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, ValueOperator
 from torchrl.objectives import A2CLoss, SoftUpdate, ValueEstimators
 
@@ -42,6 +44,52 @@ COLUMNS = ["episode", "frames", "return", "length", "success",
            "loss_objective", "loss_critic", "loss_entropy", "loss_qvalue"]
 
 
+def make_a2c(cfg: DictConfig, actor_net: torch.nn.Module, value_net: torch.nn.Module,
+             action_spec: TensorSpec) -> tuple[ProbabilisticActor, A2CLoss, torch.optim.Optimizer]:
+    """The A2C part of the recipe: the sampling actor, ``A2CLoss`` with GAE, and its Adam.
+
+    ``cfg.loss`` and ``cfg.optim`` are read (Table A1's values plus what it leaves open).
+    """
+    actor = ProbabilisticActor(
+        TensorDictModule(actor_net, in_keys=["observation"], out_keys=["logits"]),
+        in_keys=["logits"],
+        spec=action_spec,
+        distribution_class=OneHotCategorical,
+        return_log_prob=True,
+    )
+    critic = ValueOperator(value_net, in_keys=["observation"])
+    loss = A2CLoss(actor, critic, entropy_coeff=cfg.loss.entropy_coeff, critic_coeff=cfg.loss.critic_coeff,
+                   loss_critic_type=cfg.loss.critic_loss)
+    loss.make_value_estimator(ValueEstimators.GAE, gamma=cfg.loss.gamma, lmbda=cfg.loss.gae_lambda)
+    optim = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps)
+    return actor, loss, optim
+
+
+def a2c_step(cfg: DictConfig, loss: A2CLoss, optim: torch.optim.Optimizer, batch: TensorDictBase) -> dict[str, float]:
+    """One A2C update on a ``[envs, time]`` batch; returns the three loss terms.
+
+    The rewards are scaled by ``loss.reward_scale`` in ``batch`` (in place), GAE
+    advantages are computed once and, with ``loss.normalize_advantage``, standardised over
+    the batch; the gradient of the summed loss is clipped to ``optim.max_grad_norm``.
+    """
+    if cfg.loss.reward_scale != 1.0:
+        batch.set(("next", "reward"), batch.get(("next", "reward")) * cfg.loss.reward_scale)
+    with torch.no_grad():
+        loss.value_estimator(batch)  # GAE: "advantage" and "value_target"
+    if cfg.loss.normalize_advantage:
+        adv = batch.get("advantage")
+        batch.set("advantage", (adv - adv.mean()) / (adv.std() + 1e-8))
+    terms = loss(batch)
+    if "loss_entropy" not in terms.keys():  # entropy_coeff 0: TorchRL leaves the term out
+        terms.set("loss_entropy", torch.zeros(()))
+    total = terms["loss_objective"] + terms["loss_critic"] + terms["loss_entropy"]
+    optim.zero_grad()
+    total.backward()
+    torch.nn.utils.clip_grad_norm_(loss.parameters(), cfg.optim.max_grad_norm)
+    optim.step()
+    return {key: terms[key].item() for key in ("loss_objective", "loss_critic", "loss_entropy")}
+
+
 def main(argv: Sequence[str] | None = None) -> Path:
     args = parse_recipe_args(argv, __doc__)
     cfg = recipe_config(CONFIG, args)
@@ -52,44 +100,26 @@ def main(argv: Sequence[str] | None = None) -> Path:
     actor_net = lunar_actor(cfg.network.hidden, cfg.network.actor_dropout)
     value_net = lunar_critic(cfg.network.hidden, 1)
     qvalue_net = lunar_critic(cfg.network.hidden, 4, obs_dims=LUNAR_QVALUE_DIMS)
-    action_spec = make_lunar_env(1).full_action_spec["action"]
-    actor = ProbabilisticActor(
-        TensorDictModule(actor_net, in_keys=["observation"], out_keys=["logits"]),
-        in_keys=["logits"],
-        spec=action_spec,
-        distribution_class=OneHotCategorical,
-        return_log_prob=True,
-    )
-    critic = ValueOperator(value_net, in_keys=["observation"])
+    actor, a2c_loss, optim = make_a2c(cfg, actor_net, value_net, make_lunar_env(1).full_action_spec["action"])
     qvalue = TensorDictModule(qvalue_net, in_keys=["observation"], out_keys=["action_value"])
 
-    # --- losses and optimisers ----------------------------------------------------------
-    a2c_loss = A2CLoss(actor, critic, entropy_coeff=cfg.loss.entropy_coeff, critic_coeff=cfg.loss.critic_coeff)
-    a2c_loss.make_value_estimator(ValueEstimators.GAE, gamma=cfg.loss.gamma, lmbda=cfg.loss.gae_lambda)
+    # --- the Q critic's loss, optimiser and replay buffer -------------------------------
     q_loss = QCriticLoss(qvalue, gamma=cfg.loss.gamma)
     q_target = SoftUpdate(q_loss, tau=cfg.qcritic.tau)
-    optim = torch.optim.Adam(a2c_loss.parameters(), lr=cfg.optim.lr)
     q_optim = torch.optim.Adam(q_loss.parameters(), lr=cfg.qcritic.lr)
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.qcritic.buffer_size), batch_size=cfg.qcritic.batch_size)
 
     def update(batch) -> dict[str, float]:
-        loss = a2c_loss(batch)
-        total = loss["loss_objective"] + loss["loss_critic"] + loss["loss_entropy"]
-        optim.zero_grad()
-        total.backward()
-        torch.nn.utils.clip_grad_norm_(a2c_loss.parameters(), cfg.optim.max_grad_norm)
-        optim.step()
-
-        buffer.extend(batch.reshape(-1).select("observation", "action", "next").clone())
+        buffer.extend(batch.reshape(-1).select("observation", "action", "next").clone())  # env-scale rewards
+        metrics = a2c_step(cfg, a2c_loss, optim, batch)
+        q = torch.tensor(float("nan"))  # 0 updates per batch (benchmarks only): no Q loss
         for _ in range(cfg.qcritic.updates_per_batch):
             q = q_loss(buffer.sample())["loss_qvalue"]
             q_optim.zero_grad()
             q.backward()
             q_optim.step()
             q_target.step()
-        return {key: loss[key].item() for key in ("loss_objective", "loss_critic", "loss_entropy")} | {
-            "loss_qvalue": q.item()
-        }
+        return metrics | {"loss_qvalue": q.item()}
 
     # --- training, in checkpointed segments ---------------------------------------------
     run = TrainingRun(
@@ -97,24 +127,42 @@ def main(argv: Sequence[str] | None = None) -> Path:
         stateful={"actor": actor_net, "value": value_net, "qvalue": qvalue_net, "q_loss": q_loss,
                   "optim": optim, "q_optim": q_optim, "buffer": buffer},
     )
+    def greedy(episodes: int, random_pad: bool, seed: int) -> list[dict]:
+        """``episodes`` greedy machine-only episodes (one per env), seeded."""
+        env = make_lunar_env(episodes, random_pad=random_pad)
+        env.set_seed(seed)
+        rows = evaluate(env, actor, 1000, ["success", "crashed", "landed_outside"])
+        env.close()
+        return rows
+
+    stop_log = run.out_dir / "stop_checks.csv"
+
+    def landed_enough(segment: int) -> bool:
+        """``train.stop_success``: the greedy machine's success on the standard pad, checked
+        after each segment on ``train.stop_eval_episodes`` episodes (seeds apart from eval's)."""
+        rows = greedy(cfg.train.stop_eval_episodes, False, cfg.seed + 20_000 + segment)
+        success = sum(row["success"] for row in rows) / len(rows)
+        pd.DataFrame([{"episode": run.episodes, "frames": run.frames, "success": success}]).to_csv(
+            stop_log, mode="a", header=not stop_log.exists(), index=False)
+        return success >= cfg.train.stop_success
+
     run.start(resume=args.resume)
+    if not args.resume:
+        stop_log.unlink(missing_ok=True)
     frames_per_batch = cfg.env.num_envs * cfg.collector.rollout_length
     run.train(
         lambda seed: make_collector(partial(make_lunar_env, random_pad=cfg.env.random_pad), cfg.env.num_envs,
                                     actor, workers=cfg.collector.workers, seed=seed,
                                     frames_per_batch=frames_per_batch),
         update,
+        stop=landed_enough if cfg.train.stop_success > 0 else None,
     )
     curve = run.finish("A2C on TargetLunarLander (pad at the centre)")
 
     # --- machine-only evaluation: the standard pad and the moved pad (0 episodes: skip) --
     rows = []
     for pad, random_pad in (("standard", False), ("moved", True)) if cfg.eval.episodes > 0 else ():
-        env = make_lunar_env(cfg.eval.episodes, random_pad=random_pad)
-        env.set_seed(cfg.seed + 10_000)
-        for row in evaluate(env, actor, 1000, ["success", "crashed", "landed_outside"]):
-            rows.append({"pad": pad, **row})
-        env.close()
+        rows += [{"pad": pad, **row} for row in greedy(cfg.eval.episodes, random_pad, cfg.seed + 10_000)]
     if rows:
         pd.DataFrame(rows).to_csv(run.out_dir / "eval.csv", index=False)
     return curve
