@@ -395,3 +395,20 @@ def test_dcsc_pretrain_writes_where_dcsc_run_reads(quick, monkeypatch, capsys):
     argv = seen["argv"]
     assert Path(argv[argv.index("--out") + 1]) == expected.parent and argv[-1] == "seed=2"
     assert f"checkpoint in {expected}" in capsys.readouterr().err
+
+
+def test_debug_shows_the_real_exception_and_a_bug_is_one_line_exit_1(monkeypatch, capsys):
+    with pytest.raises(ConfigError, match="train.episodez"):
+        main(["--debug", "pretrain", "lunarlander", "train.episodez=5"])
+    monkeypatch.setenv("DCSC_DEBUG", "1")
+    with pytest.raises(ConfigError):
+        main(["pretrain", "lunarlander", "train.episodes=abc"])
+    monkeypatch.delenv("DCSC_DEBUG")
+
+    def bug(args):
+        raise RuntimeError("something broke\nover two lines")
+
+    monkeypatch.setitem(cli.COMMANDS, "evaluate", (*cli.COMMANDS["evaluate"][:2], bug))
+    assert main(["evaluate"]) == 1
+    assert one_line_error(capsys) == ("dcsc: error: RuntimeError: something broke over two lines "
+                                      "(run with --debug for the traceback)")
