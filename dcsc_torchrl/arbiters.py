@@ -105,7 +105,7 @@ class Arbiter(TensorDictModuleBase):
 class ConfidenceArbiter(Arbiter):
     """DC-SC's learnable arbiter, Eq. 15: ``beta = sigmoid(theta * b_t)``.
 
-    ``theta`` is an ``nn.Parameter`` with one entry per action dimension (DESIGN §3:
+    ``theta`` is an ``nn.Parameter`` with one entry per action dimension (docs/math.md §6:
     1 for LunarLander, 3 for the UAV), trained by Eq. 19 (:class:`~dcsc_torchrl.losses.ThetaLoss`
     or TorchRL's ``DDPGLoss``). With ``theta >= 0`` beta stays in [0.5, sigmoid(theta)].
 

@@ -404,7 +404,7 @@ def knowledge_update(
         >>> knowledge_update(torch.tensor([20.0]), torch.tensor([1.5]), K=20.0, t_d=1.0, cap="absorbing")
         tensor([20.])
     """
-    check_in_range("K", K, 0.0, None, low_inclusive=False)
+    check_in_range("K", K, 0.0, math.inf, low_inclusive=False, high_inclusive=False)
     check_in_range("t_d", t_d, 0.0, None, low_inclusive=False)
     _check_mode(mode)
     if cap not in ("min", "absorbing"):

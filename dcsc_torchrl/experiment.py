@@ -358,8 +358,14 @@ def build_policy(
     action_spec: TensorSpec,
     *,
     uncertainty_scale: float = 1.0,
+    observation_size: int | None = None,
 ) -> SharedPolicyModule:
-    """The shared policy of Eq. 14 over the frozen pretrained machine."""
+    """The shared policy of Eq. 14 over the frozen pretrained machine.
+
+    ``observation_size`` is the env's observation width (9 on both tasks): the LunarLander
+    actor keeps only the first 8 values, so without it a wider observation would be cut
+    without a word.
+    """
     machine = MCDropoutPolicy(
         machine_net,
         output="probs" if task == "lunarlander" else "action",
@@ -368,6 +374,7 @@ def build_policy(
         delta2=cfg.machine.delta2,
         tau_inv=cfg.machine.tau_inv,
         uncertainty_scale=uncertainty_scale,
+        observation_size=observation_size,
     )
     return SharedPolicyModule(machine, arbiter, action_spec)
 
@@ -475,6 +482,7 @@ def run_cell(
     seed, rollout = int(cfg.seed), int(cfg.online.rollout_length)
     spec_env = make_env(task, cfg, preset, [0], operator_seed=0)
     action_spec = spec_env.full_action_spec["action"]
+    observation_size = spec_env.observation_spec["observation"].shape[-1]
     spec_env.close()
 
     def play(phase: str, method: str, policy: SharedPolicyModule, update: OnlineLearner | None = None,
@@ -501,7 +509,8 @@ def run_cell(
             form = cfg.arbiter[LEARNED_FORMS.get(method, "paper")]
             arbiter = make_arbiter(method, task, theta_init=form.theta_init, gain=cfg.arbiter.centred.gain,
                                    hula_threshold=threshold, **kwargs)
-        return build_policy(machine_net, arbiter, task, cfg, action_spec, uncertainty_scale=scale)
+        return build_policy(machine_net, arbiter, task, cfg, action_spec, uncertainty_scale=scale,
+                            observation_size=observation_size)
 
     def learner_for(policy: SharedPolicyModule) -> OnlineLearner:
         online = cfg.online

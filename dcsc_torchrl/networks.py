@@ -12,7 +12,7 @@ class FirstDims(nn.Module):
     """Keeps the first ``n`` entries of the last dim (the machine's view of the state).
 
     On TargetLunarLander the machine sees the 8 standard values, not the pad's x
-    (DESIGN §4: the operator knows the target, the machine does not).
+    (docs/architecture.md: the operator knows the target, the machine does not).
     """
 
     def __init__(self, n: int) -> None:

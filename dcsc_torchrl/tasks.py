@@ -64,7 +64,7 @@ def make_lunar_env(
     A gymnasium ``SyncVectorEnv`` (same-step autoreset, as TorchRL expects) under
     ``GymWrapper``, with ``success`` / ``crashed`` / ``landed_outside`` read from
     ``info``, then ``transforms`` (e.g. the operator's), ``RewardSum`` and
-    ``StepCounter``. ``render_mode`` stays ``None`` (DESIGN §7). ``max_steps``
+    ``StepCounter``. ``render_mode`` stays ``None`` (docs/envs.md: flame particles pile up otherwise). ``max_steps``
     overrides the 1000-frame timeout.
     """
     if num_envs < 1:

@@ -6,7 +6,7 @@ units of ``obs[0]``). The terrain is flat under the pad and the flags are drawn 
 The observation is gymnasium's eight values plus the pad's x; the shaping reward is
 measured relative to the pad. This follows the moved-pad LunarLander of the
 shared-autonomy work (Reddy et al., 2018, "deepassist"), with the success rule of
-DESIGN §4: both legs down between the flags and at rest.
+docs/envs.md: both legs down between the flags and at rest.
 
 Examples:
     >>> import gymnasium as gym
@@ -95,7 +95,7 @@ def pad_x_of_chunk(chunk: int) -> float:
 class TargetLunarLander(LunarLander):
     """Discrete LunarLander whose landing pad sits at a random x per episode.
 
-    Rewards (DESIGN §4): the change of the shaping
+    Rewards (docs/envs.md): the change of the shaping
     ``-100 |(x - pad_x, y)| - 100 |v| - 100 |angle| + 10 (leg_l + leg_r)``, minus 0.3 per
     frame of main engine and 0.03 per frame of side engine; −100 replaces it on a crash
     (body contact or leaving the screen) and +100 on landing on the pad.

@@ -1,4 +1,4 @@
-"""The simulated operators (DESIGN §4c): traits, RT model, decision loop, both tasks."""
+"""The simulated operators (docs/operators.md): traits, RT model, decision loop, both tasks."""
 
 from __future__ import annotations
 

@@ -18,7 +18,7 @@ from dcsc_torchrl.machine import MCDropoutPolicy
 from dcsc_torchrl.policy import SharedPolicyModule
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
 
-DESIGN_KEYS = [
+CONTRACT_KEYS = [
     "observation", "human_action", "human_rt", "human_decided", "knowledge", "human_confidence",
     "machine_probs", "machine_uncertainty", "machine_confidence", "confidence_ratio", "beta",
     "probs", "action",
@@ -132,7 +132,7 @@ def test_pipeline_rollout_has_every_design_key_finite():
     env, policy = make_pipeline()
     check_env_specs(env)
     rollout = env.rollout(50, policy, break_when_any_done=False)
-    for key in DESIGN_KEYS:
+    for key in CONTRACT_KEYS:
         assert key in rollout.keys(), key
         assert torch.isfinite(rollout[key].float()).all(), key
     assert ((rollout["beta"] >= 0.5) & (rollout["beta"] <= 1)).all()
@@ -146,7 +146,7 @@ def test_pipeline_runs_in_a_collector_with_batched_envs():
     assert len(batches) == 3
     for batch in batches:
         assert batch.batch_size == (2, 50)
-        for key in DESIGN_KEYS:
+        for key in CONTRACT_KEYS:
             assert key in batch.keys(), key
             assert torch.isfinite(batch[key].float()).all(), key
         assert (batch["action"].sum(-1) == 1).all()

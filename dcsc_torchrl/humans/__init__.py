@@ -1,4 +1,4 @@
-"""Human operators: simulated pilots and a real person at the keyboard (DESIGN §3, §4c).
+"""Human operators: simulated pilots and a real person at the keyboard (docs/operators.md).
 
 - :class:`SimulatedPilot` (TargetLunarLander) and :class:`SimulatedOperator` (UAV):
   a controller that knows the task, run with the human traits of

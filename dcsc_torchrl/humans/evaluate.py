@@ -1,4 +1,4 @@
-"""The operator alone in control (DESIGN §5 step 2): its policy and its first episodes."""
+"""The operator alone in control (the protocol's calibration phase, docs/architecture.md): its policy and its first episodes."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A simulated pilot for TargetLunarLander: knows the pad, flies with human traits (DESIGN §4c)."""
+"""A simulated pilot for TargetLunarLander: knows the pad, flies with human traits (docs/operators.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Human traits shared by the simulated operators (DESIGN §4c), in one place.
+"""Human traits shared by the simulated operators (docs/operators.md), in one place.
 
 A simulated operator is a controller that knows the task (the pad's x, the obstacles'
 future positions) wrapped in the traits of a person:
@@ -40,7 +40,7 @@ _Operator = TypeVar("_Operator", bound="SimulatedHuman")
 
 @dataclass(frozen=True)
 class OperatorTraits:
-    """The traits of a simulated person (DESIGN §4c); every field is a parameter.
+    """The traits of a simulated person (docs/operators.md); every field is a parameter.
 
     RT per decision is ex-Gaussian: ``RT = rt_mu (1 + workload_gain * workload)
     + rt_sigma * N(0, 1) + rt_tau * Exp(1)``, floored at 0, so at zero workload its mean
