@@ -163,6 +163,7 @@ class OnlineLearner:
             raise ValueError(f"updates_per_batch must be an integer >= 1, got {updates_per_batch!r}")
         self.policy = policy
         self.critic = critic
+        self.gamma = float(gamma)
         self.updates_per_batch = int(updates_per_batch)
         theta = policy["arbiter"].theta
         if policy.discrete:
@@ -213,6 +214,39 @@ class OnlineLearner:
             self.targets.step()
         return loss.item()
 
+    def fit_returns(self, frames: TensorDictBase, *, updates: int, batch_size: int, lr: float, seed: int) -> float:
+        """Fits the critic's ``Q(s, a_taken)`` to the observed discounted return-to-go (Monte Carlo).
+
+        The alternative warm-up to :meth:`warm_up`: a TD target propagates an outcome
+        back one step per update, so after a short warm-up the critic still ranks
+        actions mostly by their immediate reward (a key that burns fuel looks worse than
+        one that does not); the return of the recorded episode carries its outcome (the
+        landing or the crash) to every frame at once. ``frames`` must come from
+        :func:`run_scenarios` (first episodes, with ``env_index`` / ``frame_index``).
+        """
+        frames = frames.reshape(-1)
+        target = returns_to_go(frames, self.gamma)
+        generator = torch.Generator().manual_seed(seed)
+        optim = torch.optim.Adam(self.critic_optim.param_groups[0]["params"], lr=lr)
+        loss = torch.tensor(float("nan"))
+        for _ in range(updates):
+            index = torch.randint(frames.shape[0], (min(batch_size, frames.shape[0]),), generator=generator)
+            loss = (self.taken_value(frames[index]) - target[index]).pow(2).mean()
+            optim.zero_grad()
+            loss.backward()
+            optim.step()
+            self.targets.step()
+        return loss.item()
+
+    def taken_value(self, frames: TensorDictBase) -> torch.Tensor:
+        """The critic's value of the action taken on each frame of a flat batch, ``[N]``."""
+        params = self.loss.qvalue_network_params if self.policy.discrete else self.loss.value_network_params
+        if self.policy.discrete:
+            q = self.loss.action_values(frames, params)
+            return (q * frames["action"].to(q.dtype)).sum(-1)
+        with params.to_module(self.loss.value_network):
+            return self.loss.value_network(frames.select("observation", "action").copy())["state_action_value"].reshape(-1)
+
     def action_gap(self, frames: TensorDictBase) -> torch.Tensor:
         """``Q(s, a_machine) - Q(s, a_operator)`` per frame under the current critic.
 
@@ -251,6 +285,25 @@ class OnlineLearner:
                 "loss_theta": loss_theta.item(),
                 "loss_critic": loss_critic.item(),
             })
+
+
+def returns_to_go(frames: TensorDictBase, gamma: float) -> torch.Tensor:
+    """``G_t = sum_k gamma^k r_{t+k}`` to the end of each env's recorded episode, per frame ``[N]``.
+
+    ``frames`` is :attr:`EpisodeBatch.frames`: each env's first episode, frames tagged with
+    ``env_index`` and ``frame_index``.
+    """
+    reward = frames["next", "reward"].reshape(-1).double()
+    env, step = frames["env_index"].reshape(-1), frames["frame_index"].reshape(-1)
+    out = torch.zeros_like(reward)
+    for e in env.unique().tolist():
+        rows = (env == e).nonzero().reshape(-1)
+        rows = rows[step[rows].argsort()]
+        acc = 0.0
+        for row in reversed(rows.tolist()):
+            acc = reward[row].item() + gamma * acc
+            out[row] = acc
+    return out.to(torch.get_default_dtype())
 
 
 @dataclass
@@ -329,7 +382,10 @@ def run_scenarios(
         done = batch["next", "done"].squeeze(-1)
         before_done = (done.long().cumsum(-1) - done.long()) == 0
         in_first = active.unsqueeze(-1) & before_done
-        frames.append(batch.select(*keys, strict=False)[in_first])
+        selected = batch.select(*keys, strict=False)
+        selected["env_index"] = torch.arange(n_envs).unsqueeze(-1).expand(done.shape)
+        selected["frame_index"] = (len(frames) * rollout_length + torch.arange(done.shape[-1])).expand(done.shape)
+        frames.append(selected[in_first])
         beta_sum += (batch["beta"].detach().mean(-1) * in_first).sum(-1)
         frame_count += in_first.sum(-1)
         if trace and in_first[0].any():
@@ -379,7 +435,7 @@ def build_policy(
     return SharedPolicyModule(machine, arbiter, action_spec)
 
 
-PHASES = ("operator_alone", "collaboration", "validation")
+PHASES = ("operator_alone", "machine_alone", "collaboration", "validation")
 
 
 def scenario_seeds(phase: str, cfg: DictConfig) -> list[int]:
@@ -391,6 +447,8 @@ def scenario_seeds(phase: str, cfg: DictConfig) -> list[int]:
         return list(range(first, first + protocol.validation_scenarios))
     if phase == "operator_alone":
         return list(range(10_000, 10_000 + protocol.operator_runs))
+    if phase == "machine_alone":  # the same scenarios, flown by the machine alone
+        return list(range(10_000, 10_000 + protocol.machine_calibration_runs))
     if phase == "collaboration":
         return list(range(20_000, 20_000 + protocol.collaboration_runs))
     raise ValueError(f"unknown phase {phase!r}")
@@ -463,9 +521,10 @@ def run_cell(
 
     1. **calibrate** — the operator alone on ``protocol.operator_runs`` scenarios:
        HULA's threshold (the 90th percentile of the machine's uncertainty seen, unless
-       ``arbiter.hula_threshold`` is set), the unit of the machine's uncertainty
-       (:func:`calibrated_uncertainty_scale`, when ``machine.calibrate``) and the critic's
-       warm-up on the operator's transitions (``online.critic_warmup_updates``);
+       ``arbiter.hula_threshold`` is set) and the unit of the machine's uncertainty
+       (:func:`calibrated_uncertainty_scale`, when ``machine.calibrate``); the machine
+       alone on the first ``protocol.machine_calibration_runs`` of the same scenarios;
+       the critic's warm-up on both partners' transitions (``online.critic_warmup_updates``);
     2. **collaborate** — each learned arbiter (``dcsc``, ``dcsc_centred``) on
        ``protocol.collaboration_runs`` scenarios, theta and its own copy of the critic
        learning online (Algorithm 1);
@@ -528,15 +587,21 @@ def run_cell(
         threshold = float(torch.quantile(alone.uncertainty.double(), 0.9))
     if cfg.machine.calibrate:
         scale = calibrated_uncertainty_scale(alone.uncertainty, cfg.machine.lam, cfg.machine.delta2)
+    episodes = rows("operator_alone", "operator", alone_seeds, alone)
+    warm_frames = alone.frames
+    if cfg.protocol.machine_calibration_runs:
+        machine_seeds, machine_alone = play("machine_alone", "machine", policy_for("machine"))
+        episodes += rows("machine_alone", "machine", machine_seeds, machine_alone)
+        warm_frames = torch.cat([alone.frames, machine_alone.frames])
     warm = OnlineLearner(policy_for("dcsc"), copy.deepcopy(critic_net), theta_lr=0.0,
                          critic_lr=cfg.online.critic_lr, gamma=cfg.online.gamma, tau=cfg.online.tau)
-    warm.warm_up(alone.frames, updates=cfg.online.critic_warmup_updates, batch_size=cfg.online.warmup_batch_size,
-                 lr=cfg.online.warmup_lr, seed=run_seed(seed, pretrain_seed, "operator_alone", "critic"))
+    fit = {"td": warm.warm_up, "return": warm.fit_returns}[cfg.online.warmup_target]
+    fit(warm_frames, updates=cfg.online.critic_warmup_updates, batch_size=cfg.online.warmup_batch_size,
+        lr=cfg.online.warmup_lr, seed=run_seed(seed, pretrain_seed, "operator_alone", "critic"))
     warm_critic = warm.critic
     calibration = {**base, "hula_threshold": threshold,
                    **confidence_signal(scale, alone.frames, warm.action_gap(alone.frames),
                                        cfg.machine.lam, cfg.machine.delta2)}
-    episodes = rows("operator_alone", "operator", alone_seeds, alone)
     traces: list[dict[str, Any]] = []
     theta: list[dict[str, Any]] = []
 

@@ -11,7 +11,7 @@ from torchrl.collectors import Collector
 
 from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.config import load_config
-from dcsc_torchrl.experiment import OnlineLearner, build_policy, make_arbiter, make_env
+from dcsc_torchrl.experiment import METHODS, OnlineLearner, build_policy, make_arbiter, make_env
 from dcsc_torchrl.networks import machine_from_checkpoint
 from recipes.reproduce import reproduce
 from recipes.shared_control import RECIPES
@@ -39,17 +39,19 @@ def test_quick_reproduce_writes_every_output(quick_run, task):
     episodes = pd.read_csv(out / "episodes.csv")
     assert set(episodes.columns) >= EPISODE_COLUMNS
     val = episodes[episodes["phase"] == "validation"]
-    assert set(val["method"]) == {"machine", "operator", "hula", "dcsc"}
+    assert set(val["method"]) == set(METHODS)
+    assert sorted(val.loc[val["method"] == "constant", "constant_beta"].unique()) == [0.0, 0.5, 1.0]
+    assert set(episodes["phase"]) == {"operator_alone", "machine_alone", "collaboration", "validation"}
     assert set(val["group"]) == {1, 2}
     assert val[["return", "steps", "hula_threshold"]].map(math.isfinite).all().all()
     if task == "uav":
         assert val["path_length"].map(math.isfinite).all()
     trace = pd.read_csv(out / "trace.csv")
     assert set(trace.columns) >= TRACE_COLUMNS
-    assert set(trace["method"]) == {"machine", "operator", "hula", "dcsc"}
+    assert set(trace["method"]) == set(METHODS) - {"constant"}
     numeric = trace.select_dtypes("number")
     assert numeric.map(math.isfinite).all().all()
-    for name in ["fig_performance", "fig_confidence", "fig_actions", "fig_reward"] + (
+    for name in ["fig_performance", "fig_confidence", "fig_actions", "fig_reward", "fig_constant_beta", "fig_theta"] + (
         ["fig_trajectory"] if task == "uav" else []
     ):
         assert (out / f"{name}.png").stat().st_size > 5000, name
