@@ -11,7 +11,7 @@ unfairly. The two are run alternately ``--repeats`` times (the machine's load dr
 the medians are compared. SB3 is installed only for this benchmark (``pip install -e
 .[bench]``, done by ``make bench``).
 
-    python bench/bench_pretrain.py [--frames 20000] [--repeats 3]
+    python bench/bench_pretrain.py [--frames 20000] [--repeats 3] [--envs N]
 """
 
 from __future__ import annotations
@@ -65,26 +65,25 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=20000)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--envs", type=int, default=None, help="envs of both (default: the recipe's env.num_envs)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     cfg = load_config(RECIPE_CONFIG)
-    num_envs, rollout = int(cfg.env.num_envs), int(cfg.collector.rollout_length)
-    ours_fps, ours_noq_fps, sb3_fps = [], [], []
+    num_envs = int(cfg.env.num_envs) if args.envs is None else args.envs
+    rollout = int(cfg.collector.rollout_length)
+    envs = f"env.num_envs={num_envs}"
+    ours_fps, sb3_fps = [], []
     for _ in range(args.repeats):
         with tempfile.TemporaryDirectory() as tmp:
-            fps, done = ours(args.frames, Path(tmp))
+            fps, done = ours(args.frames, Path(tmp), envs)
         ours_fps.append(fps)
         sb3_fps.append(sb3(done, num_envs, rollout))
-        with tempfile.TemporaryDirectory() as tmp:
-            ours_noq_fps.append(ours(args.frames, Path(tmp), "qcritic.updates_per_batch=0")[0])
-    ours_m, noq_m, sb3_m = (statistics.median(x) for x in (ours_fps, ours_noq_fps, sb3_fps))
+    ours_m, sb3_m = statistics.median(ours_fps), statistics.median(sb3_fps)
     print(f"| A2C pretraining, {num_envs} envs x {rollout} steps, median of {args.repeats} | frames/s |")
     print("|---|---:|")
     print(f"| dcsc-torchrl recipe (incl. the Q critic) | {ours_m:,.0f} |")
-    print(f"| dcsc-torchrl recipe, Q critic off (`qcritic.updates_per_batch=0`) | {noq_m:,.0f} |")
     print(f"| Stable-Baselines3 A2C (`render_mode=None`) | {sb3_m:,.0f} |")
     print(f"| ratio ours / SB3 | {ours_m / sb3_m:.2f} |")
-    print(f"| ratio ours, Q critic off / SB3 | {noq_m / sb3_m:.2f} |")
 
 
 if __name__ == "__main__":
