@@ -1,4 +1,4 @@
-"""``make reproduce``: both experiments end to end, then one report (DESIGN §5).
+"""``make reproduce``: both experiments end to end, then one report (docs/architecture.md).
 
     dcsc reproduce [--quick] [--results DIR] [--fresh] [key=value ...]
 

@@ -1,19 +1,22 @@
-"""Shared control end to end: Algorithm 1, the baselines and the paper's protocol (§6, DESIGN §5).
+"""Shared control end to end: Algorithm 1, the baselines and the paper's protocol (§6; docs/architecture.md).
 
 For every pretraining seed (the machine is pretrained when its checkpoint is missing) and
 every operator preset, one *cell* of the protocol runs (``dcsc_torchrl.experiment.run_cell``):
 
-1. the operator alone on 20 scenarios — calibrates HULA's threshold;
-2. DC-SC collaborating on 20 scenarios — theta and the critic learn online (Algorithm 1);
-3. the 50 validation scenarios (5 groups of 10) for machine / operator / HULA / DC-SC,
-   DC-SC still learning online.
+1. calibrate: the operator alone, then the machine alone, on 20 scenarios — HULA's
+   threshold, the unit of the machine's uncertainty, the critic's warm-up;
+2. collaborate: each learned arbiter (Eq. 15, centred) on 20 scenarios — theta and the
+   critic learn online (Algorithm 1);
+3. validate: the 50 validation scenarios (5 groups of 10) for machine / operator / HULA /
+   both DC-SC forms / DC-SC with frozen confidences / a sweep of constant betas, the
+   learned arbiters still learning online.
 
     dcsc run {lunarlander,uav} [--quick] [--out DIR] [--methods M ...] [--operators P ...]
         [--fresh] [key=value ...]
 
 Outputs in ``DIR/<task>/`` (default ``results/<task>/``): ``episodes.csv`` (every episode of
 every phase), ``trace.csv`` (every step of scenario 0 for each method, main operator and
-first pretraining seed), ``theta.csv`` (every online update of theta), ``summary.md`` and
+first pretraining seed), ``theta.csv`` (every online update of theta), ``calibration.csv`` (one row per cell), ``summary.md`` and
 the figures ``fig_*.png``. Each cell writes its rows to ``cells/<operator>-seed<s>/``, its
 ``cell.json`` last; after every cell the task's tables, summary and figures are gathered
 again from the finished cells (:func:`gather`, the one writer of these files, which
