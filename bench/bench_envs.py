@@ -9,6 +9,9 @@ ratio compares two rows measured in this same run, interleaved, best of ``REPEAT
   ``step_and_maybe_reset`` (as a collector does, auto-resetting finished scenarios) with
   random actions; env-steps/s = batch x steps/s. The baseline is a Python loop over 50
   batch-1 envs, one scenario each, stepped the same way.
+- ``dcsc/UAVPathPlanning-v0`` row: the gymnasium id as Stable-Baselines3 drives it
+  (``gym.make``, one scenario, numpy action in, numpy observation out, ``reset`` on
+  termination), against the batched env at batch 1.
 """
 
 from __future__ import annotations
@@ -55,6 +58,19 @@ def uav_env_steps_per_second(env: UAVPathPlanningEnv, steps: int, seed: int) -> 
     return env.batch_size.numel() * steps / (time.perf_counter() - start)
 
 
+def uav_gym_steps_per_second(steps: int, seed: int) -> float:
+    """Steps/s of ``steps`` random numpy actions on the gymnasium id, resetting when done."""
+    env = gym.make("dcsc/UAVPathPlanning-v0")
+    actions = np.random.default_rng(seed).uniform(0.0, 3.0, (steps, 3)).astype(np.float32)
+    env.reset(seed=seed)
+    start = time.perf_counter()
+    for action in actions:
+        _, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            env.reset()
+    return steps / (time.perf_counter() - start)
+
+
 def uav_loop_steps_per_second(singles: list[UAVPathPlanningEnv], seed: int) -> float:
     """Env-steps/s of a Python loop stepping single-scenario envs one after the other."""
     generator = torch.Generator().manual_seed(seed)
@@ -92,6 +108,7 @@ def main() -> None:
     uav = best_of(
         {
             "loop": partial(uav_loop_steps_per_second, singles),
+            "gym": partial(uav_gym_steps_per_second, UAV_STEPS[1]),
             **{
                 batch: partial(uav_env_steps_per_second, env, UAV_STEPS[batch])
                 for batch, env in batched.items()
@@ -111,6 +128,11 @@ def main() -> None:
     for batch in UAV_STEPS:
         note = f"{uav[batch] / uav['loop']:.1f} x loop" if batch == LOOP_SCENARIOS else ""
         rows.append((f"UAVPathPlanningEnv, batch {batch}", uav[batch], note))
+    rows.append((
+        "dcsc/UAVPathPlanning-v0 (gymnasium, numpy in/out), 1 env",
+        uav["gym"],
+        f"{uav['gym'] / uav[1]:.2f} x batch 1",
+    ))
 
     print(f"torch {torch.__version__}, 1 thread; best of {REPEATS} interleaved runs\n")
     print("| environment | env-steps/s | ratio |")
