@@ -19,7 +19,7 @@ Examples:
     >>> env = UAVPathPlanningEnv(scenario_seeds=range(4))
     >>> td = env.reset()
     >>> td["observation"].shape, td["obstacle_params"].shape
-    (torch.Size([4, 9]), torch.Size([4, 4, 17]))
+    (torch.Size([4, 9]), torch.Size([4, 8, 18]))
     >>> rollout = env.rollout(10, lambda td: td.set("action", torch.ones(4, 3)))
     >>> rollout["next", "reward"].shape
     torch.Size([4, 10, 1])
@@ -171,10 +171,10 @@ def obstacle_states(obstacle_params: Tensor, t: Tensor | float) -> tuple[Tensor,
         >>> params = sample_scenario(0).obstacle_params
         >>> centres, velocities, radii = obstacle_states(params, 2.5)
         >>> centres.shape, radii.shape
-        (torch.Size([4, 3]), torch.Size([4]))
+        (torch.Size([8, 3]), torch.Size([8]))
         >>> times = torch.arange(0, 5, 0.1)
         >>> obstacle_states(params, times)[0].shape
-        torch.Size([50, 4, 3])
+        torch.Size([50, 8, 3])
     """
     p = obstacle_params.unbind(-1)
     t = torch.as_tensor(t, dtype=obstacle_params.dtype, device=obstacle_params.device)
@@ -481,7 +481,7 @@ def sample_scenarios(
     Examples:
         >>> scenarios = sample_scenarios([0, 1, 2])
         >>> scenarios.start.shape, scenarios.obstacle_params.shape
-        (torch.Size([3, 3]), torch.Size([3, 4, 17]))
+        (torch.Size([3, 3]), torch.Size([3, 8, 18]))
     """
     if n_obstacles < 1:
         raise ValueError(f"n_obstacles must be >= 1, got {n_obstacles}")
