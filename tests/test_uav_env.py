@@ -29,6 +29,7 @@ from envs.uav import (
     THREAT_COST,
     THREAT_MARGIN,
     TIME_COST,
+    ObstacleFamily,
     ObstacleParam,
     UAVPathPlanningEnv,
     UAVScenario,
@@ -441,6 +442,27 @@ def test_bad_construction_is_rejected():
         UAVPathPlanningEnv(scenario_seeds=[0], scenario_fn=_fixed_scenario(_far_obstacles()[:2]))
     with pytest.raises(ValueError, match="n_obstacles"):
         sample_scenario(0, n_obstacles=0)
+    with pytest.raises(ValueError, match="crossing=2"):
+        ObstacleFamily(crossing=2)
+    with pytest.raises(ValueError, match="speed"):
+        ObstacleFamily(speed=(2.0, 1.0))
+
+
+def test_a_family_is_a_parameter_of_the_scenarios():
+    mild = ObstacleFamily(speed=(0.5, 1.5), radius=(0.6, 1.2), lateral=1.5, vertical=1.0,
+                          intercept=None, climb=0.0, crossing=0.0)
+    radii = sample_scenarios(range(20), n_obstacles=4, family=mild).obstacle_params[
+        ..., ObstacleParam.RADIUS
+    ]
+    assert radii.min() >= 0.6 and radii.max() <= 1.2
+    params = sample_scenarios(range(20)).obstacle_params  # the calibrated family
+    pairs = params.reshape(20, N_OBSTACLES // 2, 2, N_OBSTACLE_PARAMS)
+    # crossing pairs: same anchor and crossing time, drifts from opposite sides
+    for field in (ObstacleParam.CENTRE_X, ObstacleParam.CENTRE_Y, ObstacleParam.CROSS_TIME):
+        torch.testing.assert_close(pairs[..., 0, field], pairs[..., 1, field])
+    drift = pairs[..., ObstacleParam.DRIFT_X : ObstacleParam.DRIFT_Y + 1]
+    assert ((drift[..., 0, :] * drift[..., 1, :]).sum(-1) < 0).all()
+    assert (params[..., ObstacleParam.DRIFT_Z].abs() > 0).any()
 
 
 def test_plot_draws_path_obstacle_tracks_start_and_goal():
