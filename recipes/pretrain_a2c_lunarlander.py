@@ -3,14 +3,16 @@
 A2C with GAE over batched TargetLunarLander envs (pad at the centre: the standard task).
 The actor is an MLP with dropout (MC dropout samples it later, Eq. 10) that sees the 8
 standard values, not the pad. Beside it a Q critic learns Q(s, a) from a replay buffer
-by the TD loss of Algorithm 1 — DC-SC's theta update needs Q. Training stops after
-``train.episodes`` episodes; every ``train.checkpoint_every`` episodes an atomic
+by the TD loss of Algorithm 1 — DC-SC's theta update needs Q; it reads all 9 values, the
+pad included. Training stops after ``train.episodes`` episodes (or, with
+``train.stop_success``, once the greedy machine lands that often); every ``train.checkpoint_every`` episodes an atomic
 checkpoint is written, and ``--resume`` continues from the last one.
 
     python recipes/pretrain_a2c_lunarlander.py [--quick] [--resume] [--out DIR] [key=value ...]
 
 Outputs in ``logger.out_dir``: ``train.csv`` (one row per episode), ``checkpoint.pt``,
-``learning_curve.png`` and ``eval.csv`` (machine-only greedy episodes, standard and moved pad).
+``learning_curve.png``, ``eval.csv`` (machine-only greedy episodes, standard and moved pad)
+and, with ``train.stop_success > 0``, ``stop_checks.csv`` (the landing check after each segment).
 """
 
 from __future__ import annotations
@@ -112,8 +114,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     def update(batch) -> dict[str, float]:
         buffer.extend(batch.reshape(-1).select("observation", "action", "next").clone())  # env-scale rewards
         metrics = a2c_step(cfg, a2c_loss, optim, batch)
-        q = torch.tensor(float("nan"))  # 0 updates per batch (benchmarks only): no Q loss
-        for _ in range(cfg.qcritic.updates_per_batch):
+        for _ in range(cfg.qcritic.updates_per_batch):  # >= 1 (dcsc_torchrl.config.LIMITS)
             q = q_loss(buffer.sample())["loss_qvalue"]
             q_optim.zero_grad()
             q.backward()
