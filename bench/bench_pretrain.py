@@ -11,7 +11,7 @@ unfairly. The two are run alternately ``--repeats`` times (the machine's load dr
 the medians are compared. SB3 is installed only for this benchmark (``pip install -e
 .[bench]``, done by ``make bench``).
 
-    python bench/bench_pretrain.py [--frames 20000] [--repeats 3] [--envs N]
+    python bench/bench_pretrain.py [--frames 20000] [--repeats 3] [--envs N] [--rollout T]
 """
 
 from __future__ import annotations
@@ -66,16 +66,18 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=20000)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--envs", type=int, default=None, help="envs of both (default: the recipe's env.num_envs)")
+    parser.add_argument("--rollout", type=int, default=None,
+                        help="frames per env per update, both (default: the recipe's collector.rollout_length)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     cfg = load_config(RECIPE_CONFIG)
     num_envs = int(cfg.env.num_envs) if args.envs is None else args.envs
-    rollout = int(cfg.collector.rollout_length)
-    envs = f"env.num_envs={num_envs}"
+    rollout = int(cfg.collector.rollout_length) if args.rollout is None else args.rollout
+    envs = (f"env.num_envs={num_envs}", f"collector.rollout_length={rollout}")
     ours_fps, sb3_fps = [], []
     for _ in range(args.repeats):
         with tempfile.TemporaryDirectory() as tmp:
-            fps, done = ours(args.frames, Path(tmp), envs)
+            fps, done = ours(args.frames, Path(tmp), *envs)
         ours_fps.append(fps)
         sb3_fps.append(sb3(done, num_envs, rollout))
     ours_m, sb3_m = statistics.median(ours_fps), statistics.median(sb3_fps)
