@@ -170,7 +170,11 @@ def add_play_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
                              "reads seed 0's, <pretrain.out_dir>/seed0/checkpoint.pt of "
                              "recipes/shared_control_lunarlander.yaml)")
     parser.add_argument("--episodes", type=int, default=3, help="episodes to fly (default 3)")
-    parser.add_argument("--seed", type=int, default=0, help="the first episode's env seed (default 0)")
+    parser.add_argument("--seed", type=int, default=0, help="episode i plays scenario seed + i (default 0)")
+    parser.add_argument("--out", type=Path, default=Path("results/play"),
+                        help="folder of episodes.csv and trace.csv, appended to (default results/play)")
+    parser.add_argument("--participant", default="person",
+                        help="the operator column of the CSVs (a participant id in a user study)")
     return parser
 
 
@@ -248,7 +252,8 @@ def _play(args: argparse.Namespace) -> None:
 
     try:
         play_main([args.task, "--assist", args.assist, *(["--checkpoint", str(checkpoint)] if checkpoint else []),
-                   "--episodes", str(args.episodes), "--seed", str(args.seed)])
+                   "--episodes", str(args.episodes), "--seed", str(args.seed), "--out", str(args.out),
+                   "--participant", args.participant])
     except SystemExit as stop:  # play's own message (no checkpoint, no display): a usage error
         if isinstance(stop.code, str):
             raise UsageError(stop.code.removeprefix("dcsc play: ")) from None

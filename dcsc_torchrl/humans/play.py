@@ -46,8 +46,6 @@ from dcsc_torchrl.tasks import LUNAR_ID, LUNAR_INFO_KEYS
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
 
 TASK = "lunarlander"
-DEFAULT_CHECKPOINT = Path("runs/pretrain_lunarlander/seed0/checkpoint.pt")
-DEFAULT_OUT = Path("results/play")
 CONFIG_NAME = "shared_control_lunarlander.yaml"
 PHASE = "play"
 _STATUS_KEYS = (
@@ -63,27 +61,12 @@ _MACHINE_KEYS = ("machine_uncertainty", "machine_confidence", "confidence_ratio"
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """``dcsc play``'s parser: the task, then the options of :func:`dcsc_torchrl.cli.add_play_options`."""
+    from dcsc_torchrl.cli import add_play_options
+
     parser = argparse.ArgumentParser(prog="dcsc play", description=__doc__.split("\n\n")[0])
     parser.add_argument("task", choices=[TASK])
-    parser.add_argument(
-        "--assist",
-        choices=["dcsc", "none"],
-        default="dcsc",
-        help="share control with the pretrained machine (dcsc) or fly alone",
-    )
-    parser.add_argument(
-        "--checkpoint",
-        type=Path,
-        default=DEFAULT_CHECKPOINT,
-        help=f"LunarLander pretraining checkpoint (for --assist dcsc; default {DEFAULT_CHECKPOINT})",
-    )
-    parser.add_argument("--episodes", type=int, default=3, help="episodes to fly (default 3)")
-    parser.add_argument("--seed", type=int, default=0, help="episode i plays scenario seed + i (default 0)")
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
-                        help=f"folder of episodes.csv and trace.csv, appended to (default {DEFAULT_OUT})")
-    parser.add_argument("--participant", default="person",
-                        help="the operator column of the CSVs (a participant id in a user study)")
-    return parser
+    return add_play_options(parser)
 
 
 def play_config() -> DictConfig:
@@ -293,6 +276,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of ``dcsc play`` (``argv`` = ``["lunarlander", *options]``)."""
     args = build_parser().parse_args(argv)
     cfg = play_config()
+    if args.checkpoint is None:
+        from dcsc_torchrl.checkpoint import checkpoint_path
+
+        args.checkpoint = checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])
     confidence = HumanConfidenceTransform(**cfg.human)
     try:
         networks = load_machine(args.checkpoint) if args.assist == "dcsc" else None
