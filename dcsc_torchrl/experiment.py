@@ -516,6 +516,7 @@ def run_cell(
     *,
     methods: tuple[str, ...] = METHODS,
     trace: bool = False,
+    progress: Callable[[str], None] | None = None,
 ) -> CellResult:
     """The protocol for one (task, operator preset, pretraining seed): calibrate, collaborate, validate.
 
@@ -535,7 +536,8 @@ def run_cell(
        their collaboration means.
 
     Every run seeds torch with :func:`run_seed`, so its rows do not depend on which
-    cells or methods ran before it.
+    cells or methods ran before it. ``progress``, when given, is called with a short line
+    as each run starts (``"validation: hula"``).
     """
     base = {"task": task, "operator": preset, "pretrain_seed": pretrain_seed}
     seed, rollout = int(cfg.seed), int(cfg.online.rollout_length)
@@ -547,6 +549,8 @@ def run_cell(
     def play(phase: str, method: str, policy: SharedPolicyModule, update: OnlineLearner | None = None,
              record_trace: bool = False) -> tuple[list[int], EpisodeBatch]:
         seeds = scenario_seeds(phase, cfg)
+        if progress is not None:
+            progress(f"{phase}: {method}")
         torch.manual_seed(run_seed(seed, pretrain_seed, phase, method))
         env = make_env(task, cfg, preset, seeds, operator_seed=operator_seed(seed, pretrain_seed, seeds[0]))
         result = run_scenarios(env, policy, task, rollout_length=rollout, update=update,

@@ -153,7 +153,8 @@ def write_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: Path,
     directory.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     result = run_cell(cell.task, cfg, cell.operator, cell.pretrain_seed, machine, critic, methods=methods,
-                      trace=cell.trace)
+                      trace=cell.trace, progress=lambda line: print(f"  {cell.name}: {line}", file=sys.stderr,
+                                                                    flush=True))
     calibration = [result.calibration] if result.calibration else []
     for name, rows in zip(TABLES, (result.episodes, result.traces, result.theta, calibration), strict=True):
         if rows:
