@@ -8,6 +8,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
+from test_modules import _Critic, discrete_batch, dropout_net  # the module tests' fixtures, shared
 from torch import nn
 from torchrl.data import Bounded, OneHot
 from torchrl.objectives import DDPGLoss
@@ -26,10 +27,6 @@ from dcsc_torchrl.machine import MCDropoutPolicy, calibrated_uncertainty_scale
 from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_critic
 from dcsc_torchrl.policy import SharedPolicyModule
 from dcsc_torchrl.transforms import HumanConfidenceTransform
-
-
-def dropout_net(n_in: int = 8, n_out: int = 4, p: float = 0.2) -> nn.Module:
-    return nn.Sequential(nn.Linear(n_in, 32), nn.Tanh(), nn.Dropout(p), nn.Linear(32, n_out))
 
 
 def confidences(b_m: float, b_h: float) -> TensorDict:
@@ -76,22 +73,6 @@ def test_constant_and_frozen_arbiters_ignore_the_frame_confidences():
     assert frozen.theta is frozen.arbiter.theta
 
 
-def discrete_batch(n: int, g: torch.Generator, policy: SharedPolicyModule) -> TensorDict:
-    human = torch.nn.functional.one_hot(torch.randint(4, (n,), generator=g), 4)
-    td = TensorDict(
-        {"observation": torch.randn(n, 8, generator=g), "human_action": human,
-         "human_confidence": torch.rand(n, 1, generator=g)},
-        [n],
-    )
-    td = policy(td)
-    td["next"] = TensorDict(
-        {"observation": torch.randn(n, 8, generator=g), "reward": torch.randn(n, 1, generator=g),
-         "done": torch.zeros(n, 1, dtype=torch.bool), "terminated": torch.rand(n, 1, generator=g) < 0.2},
-        [n],
-    )
-    return td
-
-
 def test_theta_loss_gradient_of_the_centred_arbiter_is_its_eq19():
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(0)
@@ -107,15 +88,6 @@ def test_theta_loss_gradient_of_the_centred_arbiter_is_its_eq19():
         grad_j = ((beta - beta**2) * ((batch["machine_probs"] - batch["human_action"]) * q).sum(-1, keepdim=True)).mean()
     torch.testing.assert_close(theta.grad, -grad_j.reshape(1))
     assert theta.grad.abs().item() > 0
-
-
-class _Critic(nn.Module):
-    def __init__(self) -> None:
-        super().__init__()
-        self.net = nn.Sequential(nn.Linear(12, 32), nn.Tanh(), nn.Linear(32, 1))
-
-    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        return self.net(torch.cat([obs, action], -1))
 
 
 def test_ddpg_loss_gives_the_centred_theta_its_eq19_gradient():
