@@ -10,6 +10,7 @@ from torchrl.collectors import Collector
 from torchrl.data import Bounded, OneHot
 from torchrl.envs import TransformedEnv
 
+from dcsc_torchrl.arbiters import FrozenConfidenceArbiter
 from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.config import load_config
 from dcsc_torchrl.experiment import (
@@ -41,9 +42,8 @@ def all_on(td: TensorDictBase, device: str) -> bool:
 
 def uav_env_with_operator(device: str, cfg: DictConfig) -> TransformedEnv:
     """Four UAV scenarios on ``device`` with the expert operator and its confidence, as the protocol builds them."""
-    conf = cfg.confidence
     transforms = [HumanOperatorTransform(make_operator("uav", "expert"), seed=0),
-                  HumanConfidenceTransform(conf.p, conf.eta, conf.delta1, conf.K, conf.t_d, conf.k0, conf.mode)]
+                  HumanConfidenceTransform(**cfg.human)]
     return make_uav_env(4, scenario_seeds=[0, 1, 2, 3], device=device, max_steps=40, transforms=transforms)
 
 
@@ -65,7 +65,11 @@ def test_batched_uav_env_steps_on_the_device(device):
 def test_every_arbiter_blends_on_the_device(device, method):
     cfg = load_config(RECIPES / "shared_control_uav.yaml", quick=True)
     env = uav_env_with_operator(device, cfg)
-    arbiter = make_arbiter(method, "uav", theta_init=1.0, hula_threshold=0.01)
+    if method == "dcsc_frozen":  # built by the protocol from a learned arbiter
+        arbiter = FrozenConfidenceArbiter(make_arbiter("dcsc_centred", "uav", theta_init=0.0, hula_threshold=None),
+                                          0.5, 0.3)
+    else:
+        arbiter = make_arbiter(method, "uav", theta_init=1.0, hula_threshold=0.01, constant_beta=0.4)
     policy = build_policy(uav_actor([16], 0.05).to(device), arbiter, "uav", cfg, action_spec(device))
     td = policy.to(device)(env.reset())
     assert all_on(td, device)
