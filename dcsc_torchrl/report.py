@@ -367,7 +367,7 @@ def write_task_figures(results_dir: str | os.PathLike, task: str, main_operator:
     paths = [
         plot_performance(val, task, results_dir / "fig_performance.png",
                          f"{name}: performance per scenario group (operator '{main_operator}')"),
-        plot_confidence(trace, task, results_dir / "fig_confidence.png", f"{name}: confidence and authority (DC-SC)"),
+        plot_confidence(trace, task, results_dir / "fig_confidence.png", f"{name}: confidence and authority"),
         plot_authority(trace, task, results_dir / "fig_actions.png", f"{name}: machine / operator / shared actions"),
         plot_reward_over_time(trace, task, results_dir / "fig_reward.png", f"{name}: reward over time, scenario 0"),
     ]
