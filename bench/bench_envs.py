@@ -34,17 +34,22 @@ LOOP_STEPS = 40
 REPEATS = 5
 
 
-def lunar_steps_per_second(env_id: str, seed: int) -> float:
-    """Steps/s of ``LUNAR_STEPS`` random steps."""
+def gym_steps_per_second(env_id: str, actions: list, seed: int) -> float:
+    """Steps/s of the given actions on a gymnasium id (seeded reset, reset when done): how
+    an outside client such as SB3 drives it."""
     env = gym.make(env_id)
-    actions = np.random.default_rng(seed).integers(0, 4, LUNAR_STEPS).tolist()
     env.reset(seed=seed)
     start = time.perf_counter()
     for action in actions:
         _, _, terminated, truncated, _ = env.step(action)
         if terminated or truncated:
             env.reset()
-    return LUNAR_STEPS / (time.perf_counter() - start)
+    return len(actions) / (time.perf_counter() - start)
+
+
+def lunar_steps_per_second(env_id: str, seed: int) -> float:
+    """Steps/s of ``LUNAR_STEPS`` random steps."""
+    return gym_steps_per_second(env_id, np.random.default_rng(seed).integers(0, 4, LUNAR_STEPS).tolist(), seed)
 
 
 def uav_env_steps_per_second(env: UAVPathPlanningEnv, steps: int, seed: int) -> float:
@@ -60,15 +65,8 @@ def uav_env_steps_per_second(env: UAVPathPlanningEnv, steps: int, seed: int) -> 
 
 def uav_gym_steps_per_second(steps: int, seed: int) -> float:
     """Steps/s of ``steps`` random numpy actions on the gymnasium id, resetting when done."""
-    env = gym.make("dcsc/UAVPathPlanning-v0")
     actions = np.random.default_rng(seed).uniform(0.0, 3.0, (steps, 3)).astype(np.float32)
-    env.reset(seed=seed)
-    start = time.perf_counter()
-    for action in actions:
-        _, _, terminated, truncated, _ = env.step(action)
-        if terminated or truncated:
-            env.reset()
-    return steps / (time.perf_counter() - start)
+    return gym_steps_per_second("dcsc/UAVPathPlanning-v0", list(actions), seed)
 
 
 def uav_loop_steps_per_second(singles: list[UAVPathPlanningEnv], seed: int) -> float:
