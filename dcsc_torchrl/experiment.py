@@ -306,6 +306,14 @@ def returns_to_go(frames: TensorDictBase, gamma: float) -> torch.Tensor:
     return out.to(torch.get_default_dtype())
 
 
+def make_online_learner(policy: SharedPolicyModule, critic: torch.nn.Module, online: Any) -> OnlineLearner:
+    """Algorithm 1's learner with the settings of a config's ``online:`` group (the
+    protocol's learned arbiters and ``dcsc play`` alike)."""
+    return OnlineLearner(policy, critic, theta_lr=online.theta_lr, critic_lr=online.critic_lr, gamma=online.gamma,
+                         tau=online.tau, updates_per_batch=online.updates_per_batch,
+                         theta_optimizer=online.theta_optimizer)
+
+
 @dataclass
 class EpisodeBatch:
     """What :func:`run_scenarios` returns: one row per scenario, the trace of the first,
@@ -576,12 +584,7 @@ def run_cell(
                             observation_size=observation_size)
 
     def learner_for(policy: SharedPolicyModule) -> OnlineLearner:
-        online = cfg.online
-        learner = OnlineLearner(policy, copy.deepcopy(warm_critic), theta_lr=online.theta_lr,
-                                critic_lr=online.critic_lr, gamma=online.gamma, tau=online.tau,
-                                updates_per_batch=online.updates_per_batch,
-                                theta_optimizer=online.theta_optimizer)
-        return learner
+        return make_online_learner(policy, copy.deepcopy(warm_critic), cfg.online)
 
     # 1. calibrate: everything the other phases need is known before any row is written
     threshold, scale = None, 1.0

@@ -122,12 +122,9 @@ def make_policy(env: TransformedEnv, machine: nn.Module | None, cfg: DictConfig 
 
 def make_learner(policy: TensorDictModuleBase, critic: nn.Module, cfg: DictConfig) -> Any:
     """Algorithm 1's online learner (theta and the critic) with the simulated runs' settings."""
-    from dcsc_torchrl.experiment import OnlineLearner
+    from dcsc_torchrl.experiment import make_online_learner
 
-    online = cfg.online
-    return OnlineLearner(policy, critic, theta_lr=online.theta_lr, critic_lr=online.critic_lr, gamma=online.gamma,
-                         tau=online.tau, updates_per_batch=online.updates_per_batch,
-                         theta_optimizer=online.theta_optimizer)
+    return make_online_learner(policy, critic, cfg.online)
 
 
 def status_lines(tensordict: TensorDictBase) -> list[str]:
