@@ -23,7 +23,7 @@ COMMANDS = {
     "dcsc pretrain --help": ["pretrain", "--help"],
     "dcsc pretrain mars (argparse error)": ["pretrain", "mars"],
     "dcsc pretrain lunarlander train.episodez=5": ["pretrain", "lunarlander", "train.episodez=5"],
-    "dcsc run uav protocol.validation_scenarios=-4": ["run", "uav", "protocol.validation_scenarios=-4"],
+    "dcsc run uav scenarios.validation_scenarios=-4": ["run", "uav", "scenarios.validation_scenarios=-4"],
 }
 
 

@@ -23,11 +23,9 @@ from tensordict import TensorDictBase
 from dcsc_torchrl.humans import (
     PRESETS,
     SimulatedHuman,
-    SimulatedOperator,
-    SimulatedPilot,
     operator_only_episodes,
 )
-from dcsc_torchrl.tasks import MAX_STEPS, make_lunar_env, make_uav_env
+from dcsc_torchrl.tasks import TASK_NAMES, get_task
 from dcsc_torchrl.transforms import HumanOperatorTransform
 
 
@@ -52,17 +50,12 @@ class TimedOperator:
 
 def bench(task: str, preset: str, seeds: int) -> dict[str, float]:
     """One preset alone on ``task`` over ``seeds`` episodes (one per env)."""
-    if task == "lunarlander":
-        timed = TimedOperator(SimulatedPilot.from_preset(preset))
-        transform = HumanOperatorTransform(timed, seed=0)
-        env = make_lunar_env(seeds, random_pad=True, transforms=[transform])
-    else:
-        timed = TimedOperator(SimulatedOperator.from_preset(preset))
-        transform = HumanOperatorTransform(timed, seed=0)
-        env = make_uav_env(seeds, scenario_seeds=list(range(seeds)), transforms=[transform])
+    spec = get_task(task)
+    timed = TimedOperator(spec.make_operator(preset))
+    env = spec.make_envs(list(range(seeds)), None, [HumanOperatorTransform(timed, seed=0)])
     env.set_seed(0)
     start = time.perf_counter()
-    result = operator_only_episodes(env, MAX_STEPS[task])
+    result = operator_only_episodes(env, spec.max_steps)
     wall = time.perf_counter() - start
     frames = seeds * int(result["steps"].max())
     return {
@@ -79,7 +72,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=50)
     parser.add_argument(
-        "--tasks", nargs="+", default=["lunarlander", "uav"], choices=list(MAX_STEPS)
+        "--tasks", nargs="+", default=list(TASK_NAMES), choices=TASK_NAMES
     )
     args = parser.parse_args()
     torch.set_num_threads(1)

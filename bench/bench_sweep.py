@@ -25,7 +25,6 @@ import logging
 import os
 import tempfile
 import time
-from functools import partial
 from pathlib import Path
 
 import pandas as pd
@@ -36,14 +35,13 @@ from tensordict.nn import TensorDictModule
 from torchrl.modules import OneHotCategorical, ProbabilisticActor
 
 from dcsc_torchrl.config import load_config
-from dcsc_torchrl.experiment import METHODS
-from dcsc_torchrl.networks import lunar_actor, uav_actor
-from dcsc_torchrl.tasks import MAX_STEPS, make_lunar_env, make_uav_env
+from dcsc_torchrl.methods import METHOD_NAMES as METHODS
+from dcsc_torchrl.tasks import TASK_NAMES as TASKS
+from dcsc_torchrl.tasks import get_task
 from dcsc_torchrl.training import make_collector
-from recipes.shared_control import PRETRAIN, RECIPES, pretrained_machine
+from recipes.shared_control import RECIPES, pretrained_machine
 from recipes.sweep import CONFIG, connect, run_sweep, task_grid
 
-TASKS = ("lunarlander", "uav")
 RAY_WORKERS = (1, 2)
 COLLECTOR_WORKERS = (1, 2)
 COLLECT_FRAMES = {"lunarlander": 6_000, "uav": 8_000}
@@ -59,9 +57,9 @@ def cell_frames(episodes: pd.DataFrame) -> int:
 
 def full_cell_frames(cfg: DictConfig, task: str) -> int:
     """The frame bound of one full-scale cell: every batch of scenarios runs to the horizon."""
-    protocol = cfg.protocol
-    scenarios = protocol.operator_runs + protocol.collaboration_runs + protocol.validation_scenarios * len(METHODS)
-    return scenarios * (protocol.max_steps or MAX_STEPS[task])
+    counts = cfg.scenarios
+    scenarios = counts.operator_runs + counts.collaboration_runs + counts.validation_scenarios * len(METHODS)
+    return scenarios * (cfg.protocol.max_steps or get_task(task).max_steps)
 
 
 def makespan(seconds: list[float], slots: int) -> float:
@@ -79,7 +77,7 @@ def bench_sweep(root: Path) -> tuple[int, list[tuple[int, float, float]], dict[s
     grids = [task_grid(task, sweep_cfg, [f"pretrain.out_dir={root / f'pretrain_{task}'}"], quick=True)
              for task in TASKS]
     for grid in grids:
-        pretrained_machine(grid.task, grid.cfg, 0, quick=True)
+        pretrained_machine(get_task(grid.task), grid.cfg, 0, quick=True)
     rows, per_cell = [], {}
     for workers in RAY_WORKERS:
         out = root / f"sweep_{workers}"
@@ -102,15 +100,15 @@ def bench_sweep(root: Path) -> tuple[int, list[tuple[int, float, float]], dict[s
 
 def collection_rate(task: str, workers: int) -> tuple[float, float]:
     """(start s, frames/s) of the pretraining recipe's collection with ``workers`` processes."""
-    cfg = load_config(RECIPES / f"{PRETRAIN[task]}.yaml")
-    if task == "lunarlander":
-        make_env = partial(make_lunar_env, random_pad=False)
-        policy = ProbabilisticActor(
-            TensorDictModule(lunar_actor(cfg.network.hidden, cfg.network.actor_dropout), ["observation"], ["logits"]),
-            ["logits"], spec=make_lunar_env(1).full_action_spec["action"], distribution_class=OneHotCategorical)
+    spec = get_task(task)
+    cfg = load_config(RECIPES / f"{spec.pretrain_recipe.rsplit('.', 1)[1]}.yaml")
+    actor = spec.make_networks(cfg.network)[0]
+    make_env = spec.make_pretraining_envs
+    if spec.discrete:
+        policy = ProbabilisticActor(TensorDictModule(actor, ["observation"], ["logits"]), ["logits"],
+                                    spec=make_env(1).full_action_spec["action"], distribution_class=OneHotCategorical)
     else:
-        make_env = partial(make_uav_env, device="cpu")
-        policy = TensorDictModule(uav_actor(cfg.network.hidden, cfg.network.actor_dropout), ["observation"], ["action"])
+        policy = TensorDictModule(actor, ["observation"], ["action"])
     start = time.perf_counter()
     collector = make_collector(make_env, cfg.env.num_envs, policy, workers=workers, seed=0,
                                frames_per_batch=cfg.env.num_envs * cfg.collector.rollout_length)

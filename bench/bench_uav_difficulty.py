@@ -21,10 +21,10 @@ from pathlib import Path
 import pandas as pd
 import torch
 
+from dcsc_torchrl.batched_envs import make_uav_env
 from dcsc_torchrl.humans import SimulatedOperator
 from dcsc_torchrl.humans.evaluate import operator_only_policy
 from dcsc_torchrl.humans.traits import PRESETS
-from dcsc_torchrl.tasks import make_uav_env
 from dcsc_torchrl.transforms import HumanOperatorTransform
 from envs.uav import BEST_CONSTANT_ACTION, HORIZON, constant_action_outcomes
 
@@ -88,7 +88,7 @@ def main() -> None:
         values = {key: torch.tensor(frame[key].to_numpy()) for key in frame.columns}
         print(row(
             f"DDPG {run}", values["success"], values["collision"] | values["out_of_bounds"],
-            values["path_length"], values["length"], values["return"],
+            values["path_length"], values["steps"], values["return"],
         ))
 
 

@@ -3,8 +3,8 @@
     dcsc pretrain {lunarlander,uav} [--quick] [--resume] [--out DIR] [key=value ...]
     dcsc run {lunarlander,uav} [--quick] [--out DIR] [--methods M ...] [--operators P ...] [--fresh] [key=value ...]
     dcsc sweep [--quick] [--out DIR] [--address ADDR] [--fresh] [key=value ...]
-    dcsc reproduce [--quick] [--results DIR] [--fresh] [key=value ...]
-    dcsc evaluate [--results DIR]
+    dcsc reproduce [--quick] [--out DIR] [--fresh] [key=value ...]
+    dcsc evaluate [--out DIR]
     dcsc play lunarlander [--assist {dcsc,none}] [--checkpoint PATH] [--episodes N] [--seed S]
 
 Every parser of the project is built here (the recipes parse their command lines with
@@ -27,11 +27,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-PRETRAIN_RECIPES = {
-    "lunarlander": "recipes.pretrain_a2c_lunarlander",
-    "uav": "recipes.pretrain_ddpg_uav",
-}
-TASKS = sorted(PRETRAIN_RECIPES)
+from dcsc_torchrl.tasks import TASK_NAMES, get_task
+
 OVERRIDE = re.compile(r"^[A-Za-z_][\w.\-\[\]]*=")
 """A ``key=value`` token (a path like ``runs/a=b`` has a ``/`` before its ``=``, an option a ``-``)."""
 
@@ -109,7 +106,7 @@ def add_run_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=Path("results"),
                         help="results root: files go to OUT/<task>/ (default results/)")
     parser.add_argument("--methods", "--method", nargs="+", default=None, metavar="METHOD",
-                        help="methods to run (default: every method of the protocol, experiment.METHODS)")
+                        help="methods to run (default: every method of the protocol, dcsc_torchrl.methods.METHODS)")
     parser.add_argument("--operators", "--operator", nargs="+", default=None, metavar="PRESET",
                         help="operator presets (default: the config's operator.presets)")
     parser.add_argument("--fresh", action="store_true",
@@ -146,7 +143,7 @@ def add_sweep_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParse
 def add_reproduce_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dcsc reproduce`` / ``recipes/reproduce.py``."""
     parser.add_argument("--quick", action="store_true", help="the same at a tiny scale (about a minute)")
-    parser.add_argument("--results", type=Path, default=None,
+    parser.add_argument("--out", type=Path, default=None,
                         help="results root (default results/, results/quick with --quick)")
     parser.add_argument("--fresh", action="store_true",
                         help="delete the results of an earlier run of another config and start over")
@@ -156,7 +153,7 @@ def add_reproduce_options(parser: argparse.ArgumentParser) -> argparse.ArgumentP
 
 def add_evaluate_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dcsc evaluate``."""
-    parser.add_argument("--results", type=Path, default=Path("results"),
+    parser.add_argument("--out", type=Path, default=Path("results"),
                         help="results root holding <task>/episodes.csv (default results/)")
     return parser
 
@@ -187,14 +184,14 @@ def _pretrain(args: argparse.Namespace) -> Path:
     from dcsc_torchrl.checkpoint import checkpoint_path
     from dcsc_torchrl.config import load_config
 
-    module = PRETRAIN_RECIPES[args.task]
+    task = get_task(args.task)
+    module = task.pretrain_recipe
     cfg = load_config(recipes_dir() / f"{module.rsplit('.', 1)[1]}.yaml", args.overrides, quick=args.quick)
     # by default where `dcsc run` (same --quick) reads this seed's machine
-    protocol = load_config(recipes_dir() / f"shared_control_{args.task}.yaml", quick=args.quick)
+    protocol = load_config(recipes_dir() / task.config, quick=args.quick)
     out = args.out or checkpoint_path(protocol.pretrain.out_dir, cfg.seed).parent
-    argv = [*(["--quick"] if args.quick else []), *(["--resume"] if args.resume else []), "--out", str(out),
-            *args.overrides]
-    importlib.import_module(module).main(argv)
+    cfg.logger.out_dir = str(out)
+    importlib.import_module(module).train(cfg, resume=args.resume)
     _say(f"checkpoint in {out / 'checkpoint.pt'}")
     return out
 
@@ -203,7 +200,7 @@ def _run(args: argparse.Namespace) -> Path:
     from dcsc_torchrl.config import load_config
 
     # the config checked before torch loads: a typo is answered at once (run checks it again)
-    load_config(recipes_dir() / f"shared_control_{args.task}.yaml", args.overrides, quick=args.quick)
+    load_config(recipes_dir() / get_task(args.task).config, args.overrides, quick=args.quick)
     from recipes.shared_control import run
 
     return run(args)
@@ -212,7 +209,7 @@ def _run(args: argparse.Namespace) -> Path:
 def _evaluate(args: argparse.Namespace) -> Path:
     from recipes.reproduce import evaluate
 
-    path = evaluate(args.results)
+    path = evaluate(args.out)
     _say(f"results in {path.parent}")
     return path
 
@@ -220,7 +217,7 @@ def _evaluate(args: argparse.Namespace) -> Path:
 def _reproduce(args: argparse.Namespace) -> Path:
     from recipes.reproduce import reproduce
 
-    path = reproduce(args.results, quick=args.quick, overrides=args.overrides, fresh=args.fresh)
+    path = reproduce(args.out, quick=args.quick, overrides=args.overrides, fresh=args.fresh)
     _say(f"results in {path.parent}")
     return path
 
@@ -228,11 +225,11 @@ def _reproduce(args: argparse.Namespace) -> Path:
 def _sweep(args: argparse.Namespace) -> Any:
     from dcsc_torchrl.config import load_config
 
-    sweep_overrides = [item for item in args.overrides if item.partition(".")[0] not in PRETRAIN_RECIPES]
+    sweep_overrides = [item for item in args.overrides if item.partition(".")[0] not in TASK_NAMES]
     load_config(recipes_dir() / "sweep.yaml", sweep_overrides, quick=args.quick)  # checked before Ray loads
-    for task in TASKS:
+    for task in TASK_NAMES:
         prefix = f"{task}."
-        load_config(recipes_dir() / f"shared_control_{task}.yaml",
+        load_config(recipes_dir() / get_task(task).config,
                     [item[len(prefix):] for item in args.overrides if item.startswith(prefix)], quick=args.quick)
     from recipes.sweep import sweep
 
@@ -282,7 +279,7 @@ def build_parser() -> Parser:
         sub = commands.add_parser(name, help=summary, description=summary, prog=f"dcsc {name}",
                                   epilog=RUN_EPILOG if name == "run" else None)
         if name in ("pretrain", "run"):
-            sub.add_argument("task", choices=TASKS, help="the task")
+            sub.add_argument("task", choices=TASK_NAMES, help="the task")
         elif name == "play":
             sub.add_argument("task", choices=["lunarlander"], help="the task (LunarLander only)")
         add_options(sub)

@@ -58,18 +58,18 @@ LIMITS: dict[str, tuple[float, bool]] = {
     "optim.grad_clip": (0, True),
     "machine.num_samples": (1, False),
     "online.updates_per_batch": (1, False),
-    "online.critic_warmup_updates": (0, False),
-    "online.warmup_batch_size": (1, False),
-    "online.warmup_lr": (0, True),
-    "protocol.machine_calibration_runs": (0, False),
-    "protocol.first_validation_seed": (0, False),
+    "warmup.updates": (0, False),
+    "warmup.batch_size": (1, False),
+    "warmup.lr": (0, True),
+    "scenarios.machine_alone_runs": (0, False),
+    "scenarios.first_validation_seed": (0, False),
     "arbiter.centred.gain": (0, True),
-    "online.rollout_length": (1, False),
+    "protocol.rollout_length": (1, False),
     "online.theta_lr": (0, False),
     "online.critic_lr": (0, False),
-    "protocol.operator_runs": (1, False),
-    "protocol.collaboration_runs": (1, False),
-    "protocol.validation_scenarios": (1, False),
+    "scenarios.operator_runs": (1, False),
+    "scenarios.collaboration_runs": (1, False),
+    "scenarios.validation_scenarios": (1, False),
     "protocol.group_size": (1, False),
     "protocol.max_steps": (1, False),
     "ray.workers": (1, False),
@@ -167,8 +167,28 @@ def parse_override(item: str) -> dict[str, Any]:
         raise ConfigError(f"override {item!r}: {str(err).splitlines()[0]}") from None
 
 
+def _read(path: Path, seen: tuple[Path, ...] = ()) -> DictConfig:
+    """The yaml at ``path`` merged over its ``base`` file's (a path relative to it), recursively."""
+    if not path.is_file():
+        raise ConfigError(f"no config file at {path}")
+    try:
+        cfg = OmegaConf.load(path)
+    except Exception as err:  # yaml scanner / parser errors
+        raise ConfigError(f"{path} is not valid yaml: {str(err).splitlines()[0]}") from None
+    base = cfg.pop("base", None)
+    if base is None:
+        return cfg
+    base_path = (path.parent / str(base)).resolve()
+    if base_path in seen:
+        raise ConfigError(f"{path}: base {base} includes itself")
+    return OmegaConf.merge(_read(base_path, (*seen, path.resolve())), cfg)
+
+
 def load_config(path: str | os.PathLike, overrides: Sequence[str] = (), *, quick: bool = False) -> DictConfig:
     """Loads a recipe's yaml, applies its ``quick`` block if asked, then the overrides, and checks them.
+
+    A file may name a ``base`` yaml (relative to it) whose keys it extends or overrides,
+    its ``quick`` block included: the two shared-control tasks share one base.
 
     Args:
         path: the yaml file.
@@ -193,12 +213,7 @@ def load_config(path: str | os.PathLike, overrides: Sequence[str] = (), *, quick
         dcsc_torchrl.config.ConfigError: unknown key train.episodez in c.yaml (did you mean train.episodes?)
     """
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"no config file at {path}")
-    try:
-        cfg = OmegaConf.load(path)
-    except Exception as err:  # yaml scanner / parser errors
-        raise ConfigError(f"{path} is not valid yaml: {str(err).splitlines()[0]}") from None
+    cfg = _read(path)
     quick_block = cfg.pop("quick", None)
     schema = OmegaConf.to_container(cfg)
     layers: list[tuple[dict[str, Any], str]] = []

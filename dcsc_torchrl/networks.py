@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
+
+if TYPE_CHECKING:
+    from dcsc_torchrl.tasks import Task
 
 
 class FirstDims(nn.Module):
@@ -105,27 +109,18 @@ def uav_critic(hidden: Sequence[int]) -> ConcatInputs:
     return ConcatInputs(mlp(12, 1, hidden, activation=nn.ReLU))
 
 
-def machine_from_checkpoint(data: dict, task: str) -> tuple[nn.Module, nn.Module]:
-    """The pretrained machine actor and its Q critic from a loaded pretraining checkpoint.
+def machine_from_checkpoint(data: dict, task: Task) -> tuple[nn.Module, nn.Module]:
+    """The pretrained machine actor and its critic from a loaded pretraining checkpoint.
 
     ``data`` is what :func:`dcsc_torchrl.checkpoint.load_checkpoint` returned for
-    ``task``; the networks are rebuilt from the checkpoint's own config, loaded, and put
-    in eval mode. For LunarLander the critic is the Q network ``Q(s, .)`` trained beside
-    A2C; for the UAV it is DDPG's ``Q(s, a)``.
+    ``task``; the networks are rebuilt by :attr:`Task.make_networks` from the checkpoint's
+    own config, loaded (state dicts :attr:`Task.checkpoint_modules`), and put in eval mode.
+    For LunarLander the critic is the Q network ``Q(s, .)`` trained beside A2C; for the
+    UAV it is DDPG's ``Q(s, a)``.
     """
     from dcsc_torchrl.checkpoint import load_module_state
 
-    network = data["config"]["network"]
-    if task == "lunarlander":
-        actor = lunar_actor(network["hidden"], network["actor_dropout"])
-        critic: nn.Module = lunar_critic(network["hidden"], 4, obs_dims=LUNAR_QVALUE_DIMS)
-        names = ("actor", "qvalue")
-    elif task == "uav":
-        actor = uav_actor(network["hidden"], network["actor_dropout"])
-        critic = uav_critic(network["hidden"])
-        names = ("actor", "critic")
-    else:
-        raise ValueError(f"task must be 'lunarlander' or 'uav', got {task!r}")
-    load_module_state(actor, data["state"][names[0]], name=names[0])
-    load_module_state(critic, data["state"][names[1]], name=names[1])
+    actor, critic = task.make_networks(data["config"]["network"])
+    for module, name in zip((actor, critic), task.checkpoint_modules, strict=True):
+        load_module_state(module, data["state"][name], name=name)
     return actor.eval(), critic.eval()

@@ -17,12 +17,21 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-METHOD_ORDER = ["machine", "operator", "hula", "dcsc", "dcsc_centred", "dcsc_frozen", "best_constant"]
-_SHARED_LABELS = {"operator": "operator", "hula": "HULA", "dcsc": "DC-SC (Eq. 15)", "dcsc_centred": "DC-SC (centred)",
-                  "dcsc_frozen": "DC-SC, confidences frozen", "best_constant": "best constant β (oracle)"}
-METHOD_LABEL = {"lunarlander": {"machine": "A2C", **_SHARED_LABELS}, "uav": {"machine": "DDPG", **_SHARED_LABELS}}
-LEARNED = ("dcsc", "dcsc_centred", "dcsc_frozen")
-METRICS = {"lunarlander": ["success", "steps", "return"], "uav": ["success", "path_length", "return"]}
+from dcsc_torchrl.methods import BEST_CONSTANT, METHODS  # noqa: E402
+from dcsc_torchrl.tasks import get_task  # noqa: E402
+
+REPORT_ORDER = [*(name for name, m in METHODS.items() if m.kind != "sweep"), BEST_CONSTANT.name]
+"""The rows of the report's tables: every method, the constant sweep by its best beta."""
+LEARNED = tuple(name for name, m in METHODS.items() if m.kind in ("learned", "frozen"))
+
+
+def method_label(task: str, method: str) -> str:
+    """A method's name in tables and figures (the machine by its pretraining algorithm)."""
+    if method == "machine":
+        return get_task(task).machine_label
+    return BEST_CONSTANT.label if method == BEST_CONSTANT.name else METHODS[method].label
+
+
 Z95 = 1.959963984540054
 
 
@@ -44,7 +53,7 @@ def _fmt(mean: float, half: float, metric: str) -> str:
 
 
 def _methods(frame: pd.DataFrame) -> list[str]:
-    return [m for m in METHOD_ORDER if m in set(frame["method"])]
+    return [m for m in REPORT_ORDER if m in set(frame["method"])]
 
 
 def with_best_constant(frame: pd.DataFrame) -> pd.DataFrame:
@@ -66,7 +75,7 @@ def with_best_constant(frame: pd.DataFrame) -> pd.DataFrame:
 
 def summary_table(frame: pd.DataFrame, task: str, by: str | None = None) -> str:
     """A markdown table: one row per method (and ``by`` value), mean ± 95% CI per metric."""
-    metrics = METRICS[task]
+    metrics = get_task(task).metrics
     keys = ["method"] + ([by] if by else [])
     header = "| " + " | ".join(keys + [f"{m} (mean ± 95% CI)" for m in metrics] + ["n"]) + " |"
     lines = [header, "|" + "---|" * (len(keys) + len(metrics) + 1)]
@@ -76,7 +85,7 @@ def summary_table(frame: pd.DataFrame, task: str, by: str | None = None) -> str:
         for value in groups:
             cell = sub if value is None else sub[sub[by] == value]
             stats = [_fmt(*mean_ci(cell[m]), m) for m in metrics]
-            label = [METHOD_LABEL[task][method]] + ([str(value)] if by else [])
+            label = [method_label(task, method)] + ([str(value)] if by else [])
             lines.append("| " + " | ".join(label + stats + [str(len(cell))]) + " |")
     return "\n".join(lines)
 
@@ -126,7 +135,7 @@ def _constant_sweep_section(episodes: pd.DataFrame, task: str) -> list[str]:
     learned = episodes[(episodes["phase"] == "validation") & episodes["method"].isin(LEARNED)]
     by_method = learned.groupby(["operator", "method"])[["success", "mean_beta"]].mean() if len(learned) else None
     header = "| operator | " + " | ".join(f"β={b:g}" for b in betas) + " | " + " | ".join(
-        f"{METHOD_LABEL[task][m]} (mean β)" for m in LEARNED) + " |"
+        f"{method_label(task, m)} (mean β)" for m in LEARNED) + " |"
     lines = ["\n## Success against a constant β (validation, pooled over pretraining seeds)\n",
              "Every β of the sweep on the same scenarios; the learned arbiters' success with the mean β "
              "they gave the machine. The best constant is an oracle (chosen on the scenarios it is "
@@ -199,14 +208,14 @@ def plot_performance(frame: pd.DataFrame, task: str, path: Path, title: str) -> 
     groups = sorted(frame["group"].unique())
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     width = 0.8 / max(len(methods), 1)
-    for metric, ax in zip(METRICS[task], axes, strict=True):
+    for metric, ax in zip(get_task(task).metrics, axes, strict=True):
         for i, method in enumerate(methods):
             sub = frame[frame["method"] == method]
             stats = [mean_ci(sub[sub["group"] == g][metric]) for g in groups]
             means = [s[0] for s in stats]
             errs = [0 if math.isnan(s[1]) else s[1] for s in stats]
             ax.bar(np.arange(len(groups)) + i * width - 0.4 + width / 2, means, width, yerr=errs, capsize=2,
-                   label=METHOD_LABEL[task][method])
+                   label=method_label(task, method))
         ax.set_xticks(np.arange(len(groups)), [f"group {g}" for g in groups])
         ax.set_xlabel("scenario group (10 scenarios each)")
         ax.set_ylabel({"success": "success rate", "steps": "average steps", "path_length": "average path length",
@@ -237,7 +246,7 @@ def plot_confidence(trace: pd.DataFrame, task: str, path: Path, title: str, meth
     bottom.set_ylabel("machine authority β")
     bottom.legend()
     bottom.grid(alpha=0.3)
-    fig.suptitle(f"{title}, {METHOD_LABEL[task][method]}")
+    fig.suptitle(f"{title}, {method_label(task, method)}")
     return _save(fig, path)
 
 
@@ -253,7 +262,7 @@ def plot_constant_sweep(episodes: pd.DataFrame, task: str, path: Path, title: st
         ax.plot(sub["constant_beta"], sub["success"], "-", color="gray", label="constant β")
         for method, group in learned[learned["operator"] == operator].groupby("method"):
             ax.plot(group["mean_beta"].mean(), group["success"].mean(), markers.get(method, "x"), ms=8,
-                    label=METHOD_LABEL[task][method])
+                    label=method_label(task, method))
         ax.set_title(f"operator '{operator}'")
         ax.set_xlabel("machine authority β")
         ax.set_ylim(-0.02, 1.02)
@@ -291,7 +300,8 @@ def plot_authority(trace: pd.DataFrame, task: str, path: Path, title: str) -> Pa
     """Figs. 3b / 6b: the machine's, the operator's and the shared action along DC-SC's episode."""
     method = "dcsc_centred" if "dcsc_centred" in set(trace["method"]) else "dcsc"
     dcsc = trace[trace["method"] == method]
-    if task == "lunarlander":
+    spec = get_task(task)
+    if spec.discrete:
         fig, axes = plt.subplots(3, 1, figsize=(9, 6), sharex=True)
         for ax, who in zip(axes, ("machine", "operator", "shared"), strict=True):
             ax.step(dcsc["step"], dcsc[f"{who}_action"], where="post", label=f"{who} action")
@@ -300,11 +310,12 @@ def plot_authority(trace: pd.DataFrame, task: str, path: Path, title: str) -> Pa
             ax.grid(alpha=0.3)
             ax.legend(loc="upper right", fontsize=8)
     else:
-        fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
-        for ax, dim in zip(axes, ("rho", "sigma", "tau"), strict=True):
+        dims = spec.action_names
+        fig, axes = plt.subplots(len(dims), 1, figsize=(9, 7), sharex=True)
+        for ax, dim, label in zip(axes, dims, spec.action_labels, strict=True):
             for who in ("machine", "operator", "shared"):
                 ax.plot(dcsc["step"], dcsc[f"{who}_{dim}"], label=who, lw=2 if who == "shared" else 1)
-            ax.set_ylabel({"rho": "ρ0", "sigma": "σ0", "tau": "τ"}[dim])
+            ax.set_ylabel(label)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=8)
     axes[-1].set_xlabel("step")
@@ -317,7 +328,7 @@ def plot_reward_over_time(trace: pd.DataFrame, task: str, path: Path, title: str
     fig, ax = plt.subplots(figsize=(8, 4.2))
     for method in _methods(trace):
         sub = trace[trace["method"] == method]
-        ax.plot(sub["step"], sub["reward"].cumsum(), label=METHOD_LABEL[task][method])
+        ax.plot(sub["step"], sub["reward"].cumsum(), label=method_label(task, method))
     ax.set_xlabel("step")
     ax.set_ylabel("cumulative reward")
     ax.set_title(title)
@@ -341,14 +352,14 @@ def plot_uav_trajectories(trace: pd.DataFrame, scenario_seed: int, path: Path, t
         paths[method] = np.concatenate([scenario.start.reshape(1, 3).numpy(), positions])
     main = "dcsc" if "dcsc" in paths else next(iter(paths))
     fig = plot_uav_episode(torch.as_tensor(paths[main]), scenario.obstacle_params, scenario.goal,
-                           title=title, label=METHOD_LABEL["uav"][main])
+                           title=title, label=method_label("uav", main))
     ax = fig.axes[0]
     styles = {"machine": ("black", "--"), "operator": ("saddlebrown", ":"), "hula": ("magenta", "-.")}
     for method, points in paths.items():
         if method != main:
             color, style = styles.get(method, ("gray", "-"))
             ax.plot(points[:, 0], points[:, 1], points[:, 2], color=color, ls=style, lw=1.8,
-                    label=METHOD_LABEL["uav"][method])
+                    label=method_label("uav", method))
     ax.legend(fontsize=8)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -363,7 +374,8 @@ def write_task_figures(results_dir: str | os.PathLike, task: str, main_operator:
     val = with_best_constant(episodes[(episodes["phase"] == "validation") & (episodes["operator"] == main_operator)
                                       & (episodes["pretrain_seed"] == main_seed)])
     trace = trace[trace["phase"] == "validation"]
-    name = {"lunarlander": "LunarLander (moving pad)", "uav": "UAV path planning"}[task]
+    spec = get_task(task)
+    name = spec.title
     paths = [
         plot_performance(val, task, results_dir / "fig_performance.png",
                          f"{name}: performance per scenario group (operator '{main_operator}')"),
@@ -378,7 +390,7 @@ def write_task_figures(results_dir: str | os.PathLike, task: str, main_operator:
         theta = pd.read_csv(results_dir / "theta.csv")
         if len(theta):
             paths.append(plot_theta(theta, results_dir / "fig_theta.png", f"{name}: θ over the online updates"))
-    if task == "uav":
-        paths.append(plot_uav_trajectories(trace, int(trace["seed"].iloc[0]), results_dir / "fig_trajectory.png",
-                                           "UAV path planning: trajectories, scenario 0"))
+    if spec.plot_trajectories is not None:
+        paths.append(spec.plot_trajectories(trace, int(trace["seed"].iloc[0]), results_dir / "fig_trajectory.png",
+                                            f"{name}: trajectories, scenario 0"))
     return paths

@@ -1,115 +1,197 @@
-"""The two tasks as batched TorchRL environments, built the same way by every recipe.
+"""The task registry: everything the project knows about a task, in one typed entry.
 
-Building a vector env, ``GymWrapper`` runs a dummy rollout and logs two INFO lines
-("info_dict_reader does not have specs", "check_env_specs succeeded!"), dozens per run:
-:func:`quiet_torchrl` holds TorchRL's logger at WARNING while an env is built, unless
-``DCSC_VERBOSE`` is set (``dcsc -v``).
+A :class:`Task` says how to build the task's batched env, its simulated operator and its
+pretrained machine, what kind of action the machine outputs, which keys the env writes,
+how its frames are traced and labelled, and which recipe pretrains it. No other code asks
+which task it runs (``if task == ...``): it reads the entry. A third task is one more
+entry in :data:`TASKS` (docs/architecture.md, "Adding a task").
+
+This module imports neither torch nor gymnasium: the ``dcsc`` command reads the task
+names from it before the libraries load; the factories import what they build on their
+first call.
+
+Examples:
+    >>> task = get_task("uav")
+    >>> task.machine_label, task.action_dims, task.action_names
+    ('DDPG', 3, ('rho', 'sigma', 'tau'))
+    >>> get_task("lunar")
+    Traceback (most recent call last):
+    ...
+    ValueError: unknown task 'lunar': expected one of lunarlander, uav
 """
 
 from __future__ import annotations
 
-import contextlib
-import logging
-import os
-from collections.abc import Iterator
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
-import gymnasium as gym
-import torch
-from gymnasium.vector import AutoresetMode
-from torchrl.data import Categorical, Composite
-from torchrl.envs import (
-    Compose,
-    EnvBase,
-    GymWrapper,
-    RewardSum,
-    StepCounter,
-    Transform,
-    TransformedEnv,
-)
-from torchrl.envs.libs.gym import default_info_dict_reader
+if TYPE_CHECKING:
+    from pathlib import Path
 
-import envs  # noqa: F401  (registers the dcsc/* gymnasium ids)
-from envs.uav import HORIZON as UAV_HORIZON
-from envs.uav import UAVPathPlanningEnv
+    import pandas as pd
+    from torch import nn
+    from torchrl.envs import Transform, TransformedEnv
 
-LUNAR_ID = "dcsc/TargetLunarLander-v0"
-LUNAR_INFO_KEYS = ("success", "crashed", "landed_outside")
-UAV_INFO_KEYS = ("success", "collision", "out_of_bounds", "path_length")
-MAX_STEPS = {"lunarlander": gym.spec(LUNAR_ID).max_episode_steps, "uav": UAV_HORIZON}
-"""Each task's own episode limit: gymnasium's TimeLimit (1000 frames), the UAV horizon (500 steps)."""
+    from dcsc_torchrl.transforms import HumanOperator
 
 
-@contextlib.contextmanager
-def quiet_torchrl() -> Iterator[None]:
-    """TorchRL's INFO lines silenced inside the block (kept when ``DCSC_VERBOSE`` is set)."""
-    logger = logging.getLogger("torchrl")
-    level = logger.level
-    if not os.environ.get("DCSC_VERBOSE"):
-        logger.setLevel(max(level, logging.WARNING))
-    try:
-        yield
-    finally:
-        logger.setLevel(level)
+@dataclass(frozen=True)
+class Task:
+    """One task of the project.
 
-
-def make_lunar_env(
-    num_envs: int,
-    *,
-    random_pad: bool = True,
-    max_steps: int | None = None,
-    transforms: list[Transform] | None = None,
-) -> TransformedEnv:
-    """``num_envs`` TargetLunarLanders stepped by one TorchRL call.
-
-    A gymnasium ``SyncVectorEnv`` (same-step autoreset, as TorchRL expects) under
-    ``GymWrapper``, with ``success`` / ``crashed`` / ``landed_outside`` read from
-    ``info``, then ``transforms`` (e.g. the operator's), ``RewardSum`` and
-    ``StepCounter``. ``render_mode`` stays ``None`` (docs/envs.md: flame particles pile up otherwise). ``max_steps``
-    overrides the 1000-frame timeout.
+    Args:
+        name: the task's name on the command line, in CSVs and checkpoints.
+        title: the task's name in reports and figures.
+        machine_label: what the machine alone is called in tables (its pretraining algorithm).
+        discrete: ``True``: the machine outputs key probabilities (``MCDropoutPolicy(output="probs")``)
+            and the arbiter one beta; ``False``: a continuous action, one beta per dimension.
+        action_dims: the arbiter's beta (and theta) dimensions.
+        action_names: the continuous action's components (trace columns ``beta_<name>``, ...);
+            empty for a discrete action.
+        info_keys: what the env writes besides the reward (``success`` first).
+        episode_keys: the per-episode values of ``episodes.csv`` read from the final frame.
+        metrics: the report's columns, in order.
+        max_steps: the task's own episode limit.
+        config: the shared-control recipe's yaml (in ``recipes/``).
+        pretrain_recipe: the module that pretrains the machine (``train(cfg) -> Path``).
+        checkpoint_modules: the names of the actor and critic state dicts in a checkpoint.
+        trace_vectors: vectors of the next frame traced per component, e.g. ``{"position": "xyz"}``.
+        action_labels: the components' axis labels in figures (default: their names).
+        plot_trajectories: ``(trace, scenario seed, path, title) -> path``, the figure of the traced
+            paths, for a task whose frames have positions (``None``: no such figure).
+        make_envs: ``(scenario_seeds, max_steps, transforms) -> TransformedEnv``, one env per scenario.
+        make_operator: ``preset -> HumanOperator``, the simulated operator with a preset's traits.
+        make_networks: ``network config group -> (actor, critic)``, the pretraining recipe's networks.
+        make_pretraining_envs: ``num_envs -> env``, the batched env the machine is pretrained on.
     """
-    if num_envs < 1:
-        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-    vector = gym.make_vec(
-        LUNAR_ID,
-        num_envs=num_envs,
-        vectorization_mode="sync",
-        vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP},
-        random_pad=random_pad,
-        disable_env_checker=True,
-        **({} if max_steps is None else {"max_episode_steps": max_steps}),
-    )
-    with quiet_torchrl():
-        base = GymWrapper(vector)
-    info_spec = Composite(
-        {key: Categorical(2, shape=(num_envs,), dtype=torch.bool) for key in LUNAR_INFO_KEYS},
-        shape=[num_envs],
-    )
-    base.set_info_dict_reader(default_info_dict_reader(list(LUNAR_INFO_KEYS), spec=info_spec))
-    # GymWrapper already returns a TransformedEnv (TorchRL's VecGymEnvTransform) for a
-    # vector env: extend it rather than nesting a second TransformedEnv around it
-    for transform in [*(transforms or []), RewardSum(), StepCounter()]:
-        base.append_transform(transform)
-    return base
+
+    name: str
+    title: str
+    machine_label: str
+    discrete: bool
+    action_dims: int
+    action_names: tuple[str, ...]
+    info_keys: tuple[str, ...]
+    episode_keys: tuple[str, ...]
+    metrics: tuple[str, ...]
+    max_steps: int
+    config: str
+    pretrain_recipe: str
+    checkpoint_modules: tuple[str, str]
+    make_envs: Callable[[Sequence[int], int | None, Sequence[Transform]], TransformedEnv] = field(repr=False)
+    make_operator: Callable[[str], HumanOperator] = field(repr=False)
+    make_networks: Callable[[Mapping[str, Any]], tuple[nn.Module, nn.Module]] = field(repr=False)
+    make_pretraining_envs: Callable[[int], TransformedEnv] = field(repr=False)
+    trace_vectors: Mapping[str, str] = field(default_factory=dict)
+    action_labels: tuple[str, ...] = ()
+    plot_trajectories: Callable[[pd.DataFrame, int, Path, str], Path] | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if not self.action_labels:
+            object.__setattr__(self, "action_labels", self.action_names)
 
 
-def make_uav_env(
-    num_envs: int,
-    *,
-    scenario_seeds: list[int] | None = None,
-    device: str | torch.device = "cpu",
-    max_steps: int | None = None,
-    collision_reward: float | None = None,
-    transforms: list[Transform] | None = None,
-) -> TransformedEnv:
-    """``num_envs`` UAV scenarios as one native batched TorchRL env (+ transforms, RewardSum, StepCounter).
+def _lunar_envs(scenario_seeds: Sequence[int], max_steps: int | None, transforms: Sequence[Transform]) -> TransformedEnv:
+    """TargetLunarLanders with a random pad, env ``i`` playing scenario ``scenario_seeds[i]``.
 
-    ``max_steps`` overrides the 500-step horizon, ``collision_reward`` the env's -50.
+    The vector env is seeded once (env ``i`` gets ``seed + i``), so the seeds must be
+    consecutive.
     """
-    base: EnvBase = UAVPathPlanningEnv(
-        num_envs,
-        scenario_seeds=scenario_seeds,
-        device=device,
-        **({} if max_steps is None else {"horizon": max_steps}),
-        **({} if collision_reward is None else {"collision_reward": collision_reward}),
+    from dcsc_torchrl.batched_envs import make_lunar_env
+
+    seeds = list(scenario_seeds)
+    if seeds != list(range(seeds[0], seeds[0] + len(seeds))):
+        raise ValueError(f"LunarLander scenarios must be consecutive seeds (one vector env seeded once), got {seeds}")
+    env = make_lunar_env(len(seeds), random_pad=True, max_steps=max_steps, transforms=list(transforms))
+    env.set_seed(seeds[0])
+    return env
+
+
+def _uav_envs(scenario_seeds: Sequence[int], max_steps: int | None, transforms: Sequence[Transform]) -> TransformedEnv:
+    """One native batched UAV env, env ``i`` flying scenario ``scenario_seeds[i]``."""
+    from dcsc_torchrl.batched_envs import make_uav_env
+
+    return make_uav_env(len(scenario_seeds), scenario_seeds=list(scenario_seeds), max_steps=max_steps,
+                        transforms=list(transforms))
+
+
+def _lunar_pretraining_envs(num_envs: int) -> TransformedEnv:
+    """The standard task (pad at the centre), as A2C pretrains on it."""
+    from dcsc_torchrl.batched_envs import make_lunar_env
+
+    return make_lunar_env(num_envs, random_pad=False)
+
+
+def _uav_pretraining_envs(num_envs: int) -> TransformedEnv:
+    """Fresh UAV scenarios (never a validation seed), as DDPG pretrains on them."""
+    from dcsc_torchrl.batched_envs import make_uav_env
+
+    return make_uav_env(num_envs)
+
+
+def _pilot(preset: str) -> HumanOperator:
+    from dcsc_torchrl.humans import SimulatedPilot
+
+    return SimulatedPilot.from_preset(preset)
+
+
+def _uav_operator(preset: str) -> HumanOperator:
+    from dcsc_torchrl.humans import SimulatedOperator
+
+    return SimulatedOperator.from_preset(preset)
+
+
+def _lunar_networks(network: Mapping[str, Any]) -> tuple[nn.Module, nn.Module]:
+    from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic
+
+    return (lunar_actor(network["hidden"], network["actor_dropout"]),
+            lunar_critic(network["hidden"], 4, obs_dims=LUNAR_QVALUE_DIMS))
+
+
+def _uav_networks(network: Mapping[str, Any]) -> tuple[nn.Module, nn.Module]:
+    from dcsc_torchrl.networks import uav_actor, uav_critic
+
+    return uav_actor(network["hidden"], network["actor_dropout"]), uav_critic(network["hidden"])
+
+
+def _uav_trajectories(trace: pd.DataFrame, scenario_seed: int, path: Path, title: str) -> Path:
+    from dcsc_torchrl.report import plot_uav_trajectories
+
+    return plot_uav_trajectories(trace, scenario_seed, path, title)
+
+
+TASKS: dict[str, Task] = {
+    task.name: task
+    for task in (
+        Task(
+            name="lunarlander", title="LunarLander (moving pad)", machine_label="A2C", discrete=True,
+            action_dims=1, action_names=(), info_keys=("success", "crashed", "landed_outside"),
+            episode_keys=("success",), metrics=("success", "steps", "return"), max_steps=1000,
+            config="shared_control_lunarlander.yaml", pretrain_recipe="recipes.pretrain_a2c_lunarlander",
+            checkpoint_modules=("actor", "qvalue"),
+            make_envs=_lunar_envs, make_operator=_pilot, make_networks=_lunar_networks,
+            make_pretraining_envs=_lunar_pretraining_envs,
+        ),
+        Task(
+            name="uav", title="UAV path planning", machine_label="DDPG", discrete=False,
+            action_dims=3, action_names=("rho", "sigma", "tau"),
+            info_keys=("success", "collision", "out_of_bounds", "path_length"),
+            episode_keys=("success", "path_length"), metrics=("success", "path_length", "return"), max_steps=500,
+            config="shared_control_uav.yaml", pretrain_recipe="recipes.pretrain_ddpg_uav",
+            checkpoint_modules=("actor", "critic"), trace_vectors={"position": "xyz"}, action_labels=("ρ0", "σ0", "τ"),
+            make_envs=_uav_envs, make_operator=_uav_operator, make_networks=_uav_networks,
+            make_pretraining_envs=_uav_pretraining_envs,
+            plot_trajectories=_uav_trajectories,
+        ),
     )
-    return TransformedEnv(base, Compose(*(transforms or []), RewardSum(), StepCounter()))
+}
+"""Every task, by name."""
+TASK_NAMES = tuple(TASKS)
+
+
+def get_task(name: str) -> Task:
+    """The registered task ``name``; a :class:`ValueError` naming the known ones otherwise."""
+    if name not in TASKS:
+        raise ValueError(f"unknown task {name!r}: expected one of {', '.join(TASKS)}")
+    return TASKS[name]

@@ -35,7 +35,8 @@ from dcsc_torchrl.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
+from dcsc_torchrl.config import ConfigError, config_diff, load_config
+from dcsc_torchrl.episodes import in_first_episode
 from dcsc_torchrl.runlog import Progress, RunLog, plot_learning_curve
 
 
@@ -124,10 +125,10 @@ def finished_episodes(batch: TensorDictBase, extra_keys: Sequence[str] = ()) -> 
         return []
     rows = []
     returns = nxt.get("episode_reward")[done].reshape(-1).tolist()
-    lengths = nxt.get("step_count")[done].reshape(-1).tolist()
+    steps = nxt.get("step_count")[done].reshape(-1).tolist()
     extras = {key: nxt.get(key)[done].reshape(-1).tolist() for key in extra_keys}
-    for i, (ret, length) in enumerate(zip(returns, lengths, strict=True)):
-        rows.append({"return": float(ret), "length": int(length), **{k: v[i] for k, v in extras.items()}})
+    for i, (ret, length) in enumerate(zip(returns, steps, strict=True)):
+        rows.append({"return": float(ret), "steps": int(length), **{k: v[i] for k, v in extras.items()}})
     return rows
 
 
@@ -138,17 +139,14 @@ def first_episodes(rollout: TensorDictBase, extra_keys: Sequence[str] = ()) -> l
     evaluation protocol counts exactly one episode per env (one env = one scenario).
     """
     done = rollout.get(("next", "done")).squeeze(-1)
+    ends = done & in_first_episode(done)
     rows = []
-    for env_index in range(done.shape[0]):
-        steps = done[env_index].nonzero()
-        if len(steps) == 0:
-            continue
-        frame = rollout[env_index, int(steps[0])]
-        nxt = frame.get("next")
+    for env_index, t in ends.nonzero().tolist():
+        nxt = rollout[env_index, t].get("next")
         rows.append({
             "env": env_index,
             "return": float(nxt.get("episode_reward")),
-            "length": int(nxt.get("step_count")),
+            "steps": int(nxt.get("step_count")),
             **{key: nxt.get(key).item() for key in extra_keys},
         })
     return rows
@@ -180,9 +178,13 @@ class TrainingRun:
     """Run directory, CSV log, progress bar, checkpoints and resume of one training run.
 
     Args:
-        task: ``"lunarlander"`` or ``"uav"`` (written into every checkpoint).
-        cfg: the run's config; ``cfg.logger.out_dir``, ``cfg.train.episodes``,
-            ``cfg.train.checkpoint_every`` and ``cfg.seed`` are read.
+        task: the task's name (written into every checkpoint, checked on resume).
+        out_dir: the run's folder (``train.csv``, ``checkpoint.pt``, ``learning_curve.png``).
+        episodes: the episode budget.
+        checkpoint_every: episodes per segment (a checkpoint closes each).
+        seed: the run's seed (each segment's env seed derives from it).
+        config: the run's whole config as plain data: stored in every checkpoint, and a
+            resume with another one is refused (but :data:`RESUMABLE_CHANGES`).
         columns: the CSV's columns; must start with ``episode`` and ``frames``.
         stateful: objects with ``state_dict`` / ``load_state_dict`` saved in each
             checkpoint (networks, optimisers, replay buffers), by name.
@@ -191,17 +193,23 @@ class TrainingRun:
     def __init__(
         self,
         task: str,
-        cfg: DictConfig,
+        *,
+        out_dir: str | os.PathLike,
+        episodes: int,
+        checkpoint_every: int,
+        seed: int,
+        config: Mapping[str, Any],
         columns: list[str],
         stateful: Mapping[str, Any],
     ) -> None:
         if columns[:2] != ["episode", "frames"]:
             raise ValueError(f"columns must start with ['episode', 'frames'], got {columns[:2]}")
         self.task = task
-        self.cfg = cfg
-        self.out_dir = Path(cfg.logger.out_dir)
-        self.total_episodes = int(cfg.train.episodes)
-        self.checkpoint_every = int(cfg.train.checkpoint_every)
+        self.config = dict(config)
+        self.seed = int(seed)
+        self.out_dir = Path(out_dir)
+        self.total_episodes = int(episodes)
+        self.checkpoint_every = int(checkpoint_every)
         if self.total_episodes < 1 or self.checkpoint_every < 1:
             raise ValueError(
                 f"train.episodes and train.checkpoint_every must be >= 1, got "
@@ -230,7 +238,7 @@ class TrainingRun:
         remove_stale_temp_files(self.checkpoint_path)
         if resume:
             data = load_checkpoint(self.checkpoint_path, task=self.task)
-            changed = config_diff(data.get("config", {}), to_plain(self.cfg), ignore=RESUMABLE_CHANGES)
+            changed = config_diff(data.get("config", {}), self.config, ignore=RESUMABLE_CHANGES)
             if changed:
                 raise ConfigError(
                     f"cannot resume {self.checkpoint_path}: it was written with another config "
@@ -262,7 +270,7 @@ class TrainingRun:
 
     def segment_seed(self) -> int:
         """The env seed of the current segment (fresh, distinct per segment)."""
-        return int(self.cfg.seed) * 100_003 + self.segment
+        return self.seed * 100_003 + self.segment
 
     @property
     def segment_done(self) -> bool:
@@ -331,7 +339,7 @@ class TrainingRun:
                 "frames": self.frames,
                 "segment": self.segment,
                 "rng": rng_state(),
-                "config": to_plain(self.cfg),
+                "config": self.config,
             },
         )
 

@@ -30,9 +30,10 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorSpec
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, ValueOperator
 from torchrl.objectives import A2CLoss, SoftUpdate, ValueEstimators
 
+from dcsc_torchrl.batched_envs import make_lunar_env
+from dcsc_torchrl.config import to_plain
 from dcsc_torchrl.losses import QCriticLoss
 from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic
-from dcsc_torchrl.tasks import make_lunar_env
 from dcsc_torchrl.training import (
     TrainingRun,
     evaluate,
@@ -42,7 +43,7 @@ from dcsc_torchrl.training import (
 )
 
 CONFIG = Path(__file__).with_suffix(".yaml")
-COLUMNS = ["episode", "frames", "return", "length", "success",
+COLUMNS = ["episode", "frames", "return", "steps", "success",
            "loss_objective", "loss_critic", "loss_entropy", "loss_qvalue"]
 
 
@@ -92,9 +93,9 @@ def a2c_step(cfg: DictConfig, loss: A2CLoss, optim: torch.optim.Optimizer, batch
     return {key: terms[key].item() for key in ("loss_objective", "loss_critic", "loss_entropy")}
 
 
-def main(argv: Sequence[str] | None = None) -> Path:
-    args = parse_recipe_args(argv, __doc__)
-    cfg = recipe_config(CONFIG, args)
+def train(cfg: DictConfig, *, resume: bool = False) -> Path:
+    """Pretrains the machine of ``cfg`` into ``cfg.logger.out_dir`` (from its last checkpoint with
+    ``resume``); returns the learning curve's PNG."""
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
 
@@ -124,7 +125,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
 
     # --- training, in checkpointed segments ---------------------------------------------
     run = TrainingRun(
-        "lunarlander", cfg, COLUMNS,
+        "lunarlander", out_dir=cfg.logger.out_dir, episodes=cfg.train.episodes, checkpoint_every=cfg.train.checkpoint_every,
+        seed=cfg.seed, config=to_plain(cfg), columns=COLUMNS,
         stateful={"actor": actor_net, "value": value_net, "qvalue": qvalue_net, "q_loss": q_loss,
                   "optim": optim, "q_optim": q_optim, "buffer": buffer},
     )
@@ -147,8 +149,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
             stop_log, mode="a", header=not stop_log.exists(), index=False)
         return success >= cfg.train.stop_success
 
-    run.start(resume=args.resume)
-    if not args.resume:
+    run.start(resume=resume)
+    if not resume:
         stop_log.unlink(missing_ok=True)
     frames_per_batch = cfg.env.num_envs * cfg.collector.rollout_length
     run.train(
@@ -167,6 +169,11 @@ def main(argv: Sequence[str] | None = None) -> Path:
     if rows:
         pd.DataFrame(rows).to_csv(run.out_dir / "eval.csv", index=False)
     return curve
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    args = parse_recipe_args(argv, __doc__)
+    return train(recipe_config(CONFIG, args), resume=args.resume)
 
 
 if __name__ == "__main__":

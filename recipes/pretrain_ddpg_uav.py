@@ -21,13 +21,15 @@ from pathlib import Path
 
 import pandas as pd
 import torch
+from omegaconf import DictConfig
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.modules import AdditiveGaussianModule, ValueOperator
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
+from dcsc_torchrl.batched_envs import UAV_INFO_KEYS, make_uav_env
+from dcsc_torchrl.config import to_plain
 from dcsc_torchrl.networks import uav_actor, uav_critic
-from dcsc_torchrl.tasks import UAV_INFO_KEYS, make_uav_env
 from dcsc_torchrl.training import (
     TrainingRun,
     evaluate,
@@ -37,12 +39,12 @@ from dcsc_torchrl.training import (
 )
 
 CONFIG = Path(__file__).with_suffix(".yaml")
-COLUMNS = ["episode", "frames", "return", "length", "success", "loss_actor", "loss_value"]
+COLUMNS = ["episode", "frames", "return", "steps", "success", "loss_actor", "loss_value"]
 
 
-def main(argv: Sequence[str] | None = None) -> Path:
-    args = parse_recipe_args(argv, __doc__)
-    cfg = recipe_config(CONFIG, args)
+def train(cfg: DictConfig, *, resume: bool = False) -> Path:
+    """Pretrains the machine of ``cfg`` into ``cfg.logger.out_dir`` (from its last checkpoint with
+    ``resume``); returns the learning curve's PNG."""
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     device = torch.device(cfg.device)
@@ -101,11 +103,12 @@ def main(argv: Sequence[str] | None = None) -> Path:
 
     # --- training, in checkpointed segments ---------------------------------------------
     run = TrainingRun(
-        "uav", cfg, COLUMNS,
+        "uav", out_dir=cfg.logger.out_dir, episodes=cfg.train.episodes, checkpoint_every=cfg.train.checkpoint_every,
+        seed=cfg.seed, config=to_plain(cfg), columns=COLUMNS,
         stateful={"actor": actor_net, "critic": critic_net, "loss": loss, "exploration": exploration,
                   "actor_optim": actor_optim, "critic_optim": critic_optim, "buffer": buffer},
     )
-    run.start(resume=args.resume)
+    run.start(resume=resume)
     frames_per_batch = cfg.env.num_envs * cfg.collector.rollout_length
     run.train(
         lambda seed: make_collector(
@@ -122,6 +125,11 @@ def main(argv: Sequence[str] | None = None) -> Path:
     rows = evaluate(env, actor, 501, list(UAV_INFO_KEYS))
     pd.DataFrame(rows).rename(columns={"env": "scenario"}).to_csv(run.out_dir / "eval.csv", index=False)
     return curve
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    args = parse_recipe_args(argv, __doc__)
+    return train(recipe_config(CONFIG, args), resume=args.resume)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """``make reproduce``: both experiments end to end, then one report (docs/architecture.md).
 
-    dcsc reproduce [--quick] [--results DIR] [--fresh] [key=value ...]
+    dcsc reproduce [--quick] [--out DIR] [--fresh] [key=value ...]
 
 Pretrains every machine that has no checkpoint yet (A2C and DDPG, every pretraining
 seed), runs the shared-control protocol of both tasks for every operator preset, and
@@ -19,9 +19,8 @@ import pandas as pd
 
 from dcsc_torchrl.cli import Parser, add_reproduce_options
 from dcsc_torchrl.report import write_task_figures, write_task_summary
-from recipes.shared_control import main as shared_control
-
-TASKS = ("lunarlander", "uav")
+from dcsc_torchrl.tasks import TASK_NAMES
+from recipes.shared_control import run_task
 
 
 def _traced_cell(task_dir: Path) -> tuple[str, int]:
@@ -35,7 +34,7 @@ def evaluate(results: Path, wall_seconds: float | None = None) -> Path:
     parts = ["# DC-SC reproduction: results\n"]
     if wall_seconds is not None:
         parts.append(f"Wall time of the whole run: {wall_seconds / 60:.1f} min.\n")
-    for task in TASKS:
+    for task in TASK_NAMES:
         task_dir = results / task
         if not (task_dir / "episodes.csv").exists():
             continue
@@ -58,15 +57,14 @@ def reproduce(results: Path | None = None, *, quick: bool = False, overrides: Se
     """
     results = results or Path("results/quick" if quick else "results")
     start = time.perf_counter()
-    for task in TASKS:
-        shared_control([task, *(["--quick"] if quick else []), *(["--fresh"] if fresh else []), "--out", str(results),
-                        *overrides])
+    for task in TASK_NAMES:
+        run_task(task, out=results, quick=quick, overrides=overrides, fresh=fresh)
     return evaluate(results, time.perf_counter() - start)
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
     args = add_reproduce_options(Parser(description=__doc__.split("\n\n")[0])).parse_args(argv)
-    return reproduce(args.results, quick=args.quick, overrides=args.overrides, fresh=args.fresh)
+    return reproduce(args.out, quick=args.quick, overrides=args.overrides, fresh=args.fresh)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Shared control end to end: Algorithm 1, the baselines and the paper's protocol (§6; docs/architecture.md).
 
 For every pretraining seed (the machine is pretrained when its checkpoint is missing) and
-every operator preset, one *cell* of the protocol runs (``dcsc_torchrl.experiment.run_cell``):
+every operator preset, one *cell* of the protocol runs (``dcsc_torchrl.protocol.run_cell``):
 
 1. calibrate: the operator alone, then the machine alone, on 20 scenarios — HULA's
    threshold, the unit of the machine's uncertainty, the critic's warm-up;
@@ -47,32 +47,68 @@ import yaml
 from omegaconf import DictConfig
 
 from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
-from dcsc_torchrl.cli import TASKS, Parser, add_run_options
+from dcsc_torchrl.cli import Parser, add_run_options
 from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
-from dcsc_torchrl.experiment import METHODS, run_cell
 from dcsc_torchrl.humans.traits import PRESETS
+from dcsc_torchrl.methods import METHOD_NAMES
 from dcsc_torchrl.networks import machine_from_checkpoint
+from dcsc_torchrl.protocol import (
+    ArbiterSettings,
+    MachineSettings,
+    ProtocolSettings,
+    Scenarios,
+    WarmupSettings,
+    run_cell,
+)
 from dcsc_torchrl.report import write_task_figures, write_task_summary
 from dcsc_torchrl.runlog import Progress
+from dcsc_torchrl.tasks import TASK_NAMES, Task, get_task
 
 RECIPES = Path(__file__).parent
-PRETRAIN = {"lunarlander": "pretrain_a2c_lunarlander", "uav": "pretrain_ddpg_uav"}
 TABLES = ("episodes", "trace", "theta", "calibration")
 RUN_RECORD = "run_config.yaml"
 OUTPUTS = (*(f"{name}.csv" for name in TABLES), "summary.md", "failed_cells.csv", "cells", "fig_*.png")
 """What a run writes in ``<out>/<task>/`` (removed by ``--fresh``, with :data:`RUN_RECORD`)."""
 
 
-def pretrained_machine(task: str, cfg: DictConfig, seed: int, *, quick: bool) -> tuple[torch.nn.Module, torch.nn.Module]:
-    """The machine actor and critic of pretraining seed ``seed``; pretrains it when missing."""
-    path = checkpoint_path(cfg.pretrain.out_dir, seed)
-    if not path.exists():
-        import importlib
+def task_config(task: Task, overrides: Sequence[str] = (), *, quick: bool = False) -> DictConfig:
+    """The shared-control config of ``task`` (its yaml over ``shared_control.yaml``), checked."""
+    return load_config(RECIPES / task.config, overrides, quick=quick)
 
-        print(f"{task}: no checkpoint at {path}, pretraining seed {seed} first", file=sys.stderr, flush=True)
-        recipe = importlib.import_module(f"recipes.{PRETRAIN[task]}")
-        recipe.main([*(["--quick"] if quick else []), "--out", str(path.parent), f"seed={seed}"])
-    return machine_from_checkpoint(load_checkpoint(path, task=task), task)
+
+def cell_settings(cfg: DictConfig) -> dict[str, Any]:
+    """:func:`run_cell`'s settings from the config's groups (each group is one settings object's fields)."""
+    return {
+        "human": dict(cfg.human),
+        "machine": MachineSettings(**cfg.machine),
+        "arbiter": ArbiterSettings(**cfg.arbiter),
+        "online": dict(cfg.online),
+        "warmup": WarmupSettings(**cfg.warmup),
+        "protocol": ProtocolSettings(seed=cfg.seed, **cfg.protocol),
+        "scenarios": Scenarios.standard(**cfg.scenarios),
+    }
+
+
+def pretrained_machine(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -> tuple[torch.nn.Module, torch.nn.Module]:
+    """The machine actor and critic of pretraining seed ``seed``; pretrained first when missing.
+
+    A checkpoint short of its episodes (a pretraining that stopped halfway) is resumed to
+    the end first.
+    """
+    import importlib
+
+    path = checkpoint_path(cfg.pretrain.out_dir, seed)
+    recipe = importlib.import_module(task.pretrain_recipe)
+    if not path.exists():
+        print(f"{task.name}: no checkpoint at {path}, pretraining seed {seed} first", file=sys.stderr, flush=True)
+        recipe.train(load_config(recipe.CONFIG, [f"seed={seed}", f"logger.out_dir={path.parent}"], quick=quick))
+    data = load_checkpoint(path, task=task.name)
+    if data["episodes"] < data["config"]["train"]["episodes"]:
+        print(f"{task.name}: {path} stopped at episode {data['episodes']}, resuming", file=sys.stderr, flush=True)
+        recipe.train(load_config(recipe.CONFIG, [f"seed={seed}", f"logger.out_dir={path.parent}"], quick=quick),
+                     resume=True)
+        data = load_checkpoint(path, task=task.name)
+    return machine_from_checkpoint(data, task)
 
 
 def write_csv(rows: list[dict], path: Path) -> None:
@@ -152,9 +188,10 @@ def write_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: Path,
     directory = cell.directory(out)
     directory.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    result = run_cell(cell.task, cfg, cell.operator, cell.pretrain_seed, machine, critic, methods=methods,
-                      trace=cell.trace, progress=lambda line: print(f"  {cell.name}: {line}", file=sys.stderr,
-                                                                    flush=True))
+    task = get_task(cell.task)
+    result = run_cell(task, task.make_operator(cell.operator), machine, critic, operator_name=cell.operator,
+                      pretrain_seed=cell.pretrain_seed, methods=methods, trace=cell.trace, **cell_settings(cfg),
+                      progress=lambda line: print(f"  {cell.name}: {line}", file=sys.stderr, flush=True))
     calibration = [result.calibration] if result.calibration else []
     for name, rows in zip(TABLES, (result.episodes, result.traces, result.theta, calibration), strict=True):
         if rows:
@@ -254,41 +291,51 @@ def prepare_results(task_dir: Path, record: Mapping[str, Any], *, fresh: bool) -
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     """The command line of ``dcsc run`` (the same options, :func:`dcsc_torchrl.cli.add_run_options`)."""
     parser = Parser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("task", choices=TASKS, help="the task")
+    parser.add_argument("task", choices=TASK_NAMES, help="the task")
     return add_run_options(parser).parse_args(argv)
 
 
-def run(args: argparse.Namespace) -> Path:
-    """``dcsc run``: every cell of ``args.task`` not done yet, the outputs gathered after each; returns the folder.
+def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False, overrides: Sequence[str] = (),
+             methods: Sequence[str] | None = None, operators: Sequence[str] | None = None,
+             fresh: bool = False) -> Path:
+    """Every cell of ``task_name`` not done yet, the outputs gathered after each; returns ``out/<task>``.
 
-    Everything the command line names (config keys, methods, operator presets, the
-    results folder's earlier config) is checked before a machine is loaded or pretrained.
+    Everything named (config keys, methods, operator presets, the results folder's
+    earlier config) is checked before a machine is loaded or pretrained.
     """
-    cfg = load_config(RECIPES / f"shared_control_{args.task}.yaml", args.overrides, quick=args.quick)
-    methods = tuple(check_names("method", args.methods or METHODS, METHODS))
-    presets = check_names("operator preset", list(args.operators or cfg.operator.presets), list(PRESETS))
-    grid = make_grid(args.task, cfg, presets, list(cfg.pretrain.seeds))
-    for seed in dict.fromkeys(cell.pretrain_seed for cell in grid.cells if not cell.done(Path(args.out))):
+    task = get_task(task_name)
+    cfg = task_config(task, overrides, quick=quick)
+    methods = tuple(check_names("method", methods or METHOD_NAMES, METHOD_NAMES))
+    presets = check_names("operator preset", list(operators or cfg.operator.presets), list(PRESETS))
+    grid = make_grid(task.name, cfg, presets, list(cfg.pretrain.seeds))
+    out = Path(out)
+    for seed in dict.fromkeys(cell.pretrain_seed for cell in grid.cells if not cell.done(out)):
         if checkpoint_path(cfg.pretrain.out_dir, seed).exists():  # a broken one is refused before any cell runs
-            load_checkpoint(checkpoint_path(cfg.pretrain.out_dir, seed), task=args.task)
-    task_dir = Path(args.out) / args.task
-    prepare_results(task_dir, run_record(grid, methods), fresh=args.fresh)
+            load_checkpoint(checkpoint_path(cfg.pretrain.out_dir, seed), task=task.name)
+    task_dir = out / task.name
+    prepare_results(task_dir, run_record(grid, methods), fresh=fresh)
     torch.set_num_threads(cfg.threads)
 
-    done = sum(cell.done(Path(args.out)) for cell in grid.cells)
-    with Progress(len(grid.cells), f"{args.task} cells", "cell", initial=done, every=0) as progress:
+    done = sum(cell.done(out) for cell in grid.cells)
+    with Progress(len(grid.cells), f"{task.name} cells", "cell", initial=done, every=0) as progress:
         for cell in grid.cells:
-            if cell.done(Path(args.out)):
+            if cell.done(out):
                 continue
-            machine, critic = pretrained_machine(args.task, cfg, cell.pretrain_seed, quick=args.quick)
-            write_cell(cell, cfg, methods, Path(args.out), machine, critic)
-            gather(Path(args.out), grid)
+            machine, critic = pretrained_machine(task, cfg, cell.pretrain_seed, quick=quick)
+            write_cell(cell, cfg, methods, out, machine, critic)
+            gather(out, grid)
             progress.set_postfix(last=cell.name)
             progress.update()
     if not (task_dir / "summary.md").exists() or done == len(grid.cells):
-        gather(Path(args.out), grid)  # every cell was done before: the outputs, redrawn from them
+        gather(out, grid)  # every cell was done before: the outputs, redrawn from them
     print(f"results in {task_dir}", file=sys.stderr, flush=True)
     return task_dir
+
+
+def run(args: argparse.Namespace) -> Path:
+    """``dcsc run``: :func:`run_task` with the command line's options."""
+    return run_task(args.task, out=args.out, quick=args.quick, overrides=args.overrides, methods=args.methods,
+                    operators=args.operators, fresh=args.fresh)
 
 
 def main(argv: Sequence[str] | None = None) -> Path:

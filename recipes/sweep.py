@@ -1,7 +1,7 @@
 """``dcsc sweep``: the protocol's cells as Ray tasks, on this machine or a Ray cluster.
 
 A *cell* is one (task, operator preset, pretraining seed) of the protocol: every method
-on every scenario seed of the task's config (``dcsc_torchrl.experiment.run_cell``). The
+on every scenario seed of the task's config (``dcsc_torchrl.protocol.run_cell``). The
 sweep runs the grid of cells as Ray tasks, one CPU each (docs/scaling.md):
 
 1. one Ray task per pretraining checkpoint the cells need, which pretrains it when it is
@@ -33,7 +33,6 @@ cell with a ``cell.json`` is done: running the sweep again runs only the others.
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import os
 import re
@@ -51,12 +50,11 @@ from omegaconf import DictConfig
 from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
 from dcsc_torchrl.cli import Parser, add_sweep_options
 from dcsc_torchrl.config import load_config
-from dcsc_torchrl.experiment import METHODS
+from dcsc_torchrl.methods import METHOD_NAMES
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.runlog import Progress
+from dcsc_torchrl.tasks import TASK_NAMES, get_task
 from recipes.shared_control import (
-    PRETRAIN,
-    RECIPES,
     TABLES,
     Cell,
     TaskGrid,
@@ -65,6 +63,7 @@ from recipes.shared_control import (
     prepare_results,
     pretrained_machine,
     run_record,
+    task_config,
     write_cell,
 )
 
@@ -88,7 +87,7 @@ def task_grid(task: str, sweep: DictConfig, overrides: Sequence[str] = (), *, qu
 
     ``pretrain.out_dir`` is made absolute: the cells may run in other processes or nodes.
     """
-    cfg = load_config(RECIPES / f"shared_control_{task}.yaml", overrides, quick=quick)
+    cfg = task_config(get_task(task), overrides, quick=quick)
     presets = list(sweep.operators or cfg.operator.presets)
     seeds = [int(seed) for seed in (sweep.pretrain_seeds or cfg.pretrain.seeds)]
     return make_grid(task, cfg, presets, seeds)
@@ -101,21 +100,11 @@ def _worker_setup() -> None:
 
 @ray.remote(num_cpus=1)
 def ensure_pretrained(task: str, cfg: DictConfig, seed: int, quick: bool) -> str:
-    """Ray task: the path of pretraining seed ``seed``'s checkpoint, pretrained when missing.
-
-    A checkpoint short of its episodes (a pretraining that stopped halfway, e.g. an
-    earlier attempt of this task) is resumed to the end first.
-    """
+    """Ray task: the path of pretraining seed ``seed``'s checkpoint, pretrained (or resumed
+    to the end, after an earlier attempt stopped halfway) when short (:func:`pretrained_machine`)."""
     _worker_setup()
-    checkpoint = checkpoint_path(cfg.pretrain.out_dir, seed)
-    out = checkpoint.parent
-    if checkpoint.exists():
-        data = load_checkpoint(checkpoint, task=task)
-        if data["episodes"] < data["config"]["train"]["episodes"]:
-            recipe = importlib.import_module(f"recipes.{PRETRAIN[task]}")
-            recipe.main([*(["--quick"] if quick else []), "--resume", "--out", str(out), f"seed={seed}"])
-    pretrained_machine(task, cfg, seed, quick=quick)
-    return str(checkpoint)
+    pretrained_machine(get_task(task), cfg, seed, quick=quick)
+    return str(checkpoint_path(cfg.pretrain.out_dir, seed))
 
 
 def _count_attempt(directory: Path) -> int:
@@ -132,7 +121,7 @@ def run_sweep_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: s
     directory = cell.directory(Path(out))
     directory.mkdir(parents=True, exist_ok=True)
     attempts = _count_attempt(directory)
-    machine, critic = machine_from_checkpoint(load_checkpoint(checkpoint, task=cell.task), cell.task)
+    machine, critic = machine_from_checkpoint(load_checkpoint(checkpoint, task=cell.task), get_task(cell.task))
     return write_cell(cell, cfg, methods, Path(out), machine, critic,
                       {"attempts": attempts, "host": socket.gethostname(), "pid": os.getpid()})
 
@@ -197,7 +186,7 @@ def run_cells(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], metho
     return ran, failed
 
 
-def run_sweep(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...] = METHODS, *, quick: bool = False,
+def run_sweep(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...] = METHOD_NAMES, *, quick: bool = False,
               retries: int = 2, address: str | None = None, workers: int = 2, fresh: bool = False) -> SweepResult:
     """Every cell of ``grids`` not done yet, as Ray tasks, then every task's outputs gathered.
 
@@ -233,7 +222,7 @@ def run_sweep(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...] = M
 def split_overrides(overrides: Sequence[str]) -> tuple[list[str], dict[str, list[str]]]:
     """``<task>.key=value`` to that task's protocol config, the rest to the sweep config."""
     sweep: list[str] = []
-    tasks: dict[str, list[str]] = {task: [] for task in PRETRAIN}
+    tasks: dict[str, list[str]] = {task: [] for task in TASK_NAMES}
     for item in overrides:
         head, _, rest = item.partition(".")
         if head in tasks:
@@ -252,9 +241,9 @@ def sweep(args: argparse.Namespace) -> SweepResult:
     """``dcsc sweep``: the configs checked, every cell not done yet run, every task gathered."""
     sweep_overrides, task_overrides = split_overrides(args.overrides)
     cfg = load_config(CONFIG, sweep_overrides, quick=args.quick)
-    unknown = sorted({*cfg.tasks} - set(PRETRAIN)) + sorted({*cfg.methods} - set(METHODS))
+    unknown = sorted({*cfg.tasks} - set(TASK_NAMES)) + sorted({*cfg.methods} - set(METHOD_NAMES))
     if unknown:
-        raise ValueError(f"unknown tasks or methods {unknown}: tasks are {sorted(PRETRAIN)}, methods {list(METHODS)}")
+        raise ValueError(f"unknown tasks or methods {unknown}: tasks are {list(TASK_NAMES)}, methods {list(METHOD_NAMES)}")
     grids = [task_grid(task, cfg, task_overrides[task], quick=args.quick) for task in cfg.tasks]
     out = args.out or Path("results/quick" if args.quick else "results")
     result = run_sweep(out, grids, tuple(cfg.methods), quick=args.quick, retries=cfg.ray.retries,

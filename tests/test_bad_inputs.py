@@ -22,11 +22,11 @@ from torchrl.data import Bounded, OneHot, Unbounded
 from torchrl.envs import GymWrapper, TransformedEnv
 
 from dcsc_torchrl.arbiters import ConfidenceArbiter, HULAArbiter
+from dcsc_torchrl.batched_envs import LUNAR_ID
 from dcsc_torchrl.confidence import CHECK_FINITE_ENV, human_confidence, machine_confidence
 from dcsc_torchrl.machine import MCDropoutPolicy
 from dcsc_torchrl.networks import lunar_actor
 from dcsc_torchrl.policy import SharedPolicyModule
-from dcsc_torchrl.tasks import LUNAR_ID
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
 
 

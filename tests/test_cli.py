@@ -31,13 +31,13 @@ from dcsc_torchrl.checkpoint import (
 )
 from dcsc_torchrl.cli import build_parser, main
 from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
-from dcsc_torchrl.experiment import METHODS
+from dcsc_torchrl.methods import METHOD_NAMES as METHODS
 from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic
 from recipes import shared_control
 from recipes.shared_control import RECIPES, RUN_RECORD, prepare_results
 
 PRETRAIN_YAML = RECIPES / "pretrain_a2c_lunarlander.yaml"
-TINY = ["protocol.operator_runs=1", "protocol.collaboration_runs=1", "protocol.validation_scenarios=2",
+TINY = ["scenarios.operator_runs=1", "scenarios.collaboration_runs=1", "scenarios.validation_scenarios=2",
         "protocol.group_size=1", "protocol.max_steps=30"]
 
 
@@ -117,7 +117,7 @@ def test_help_and_config_errors_do_not_load_torch(tmp_path):
         "    try: main(argv)\n"
         "    except SystemExit: pass\n"
         "assert main(['pretrain', 'lunarlander', 'train.episodez=5']) == 2\n"
-        "assert main(['run', 'uav', 'protocol.validation_scenarios=-4']) == 2\n"
+        "assert main(['run', 'uav', 'scenarios.validation_scenarios=-4']) == 2\n"
         "print(sorted(m for m in ('torch', 'torchrl', 'tensordict', 'ray') if m in sys.modules))\n"
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120)
@@ -135,7 +135,7 @@ def test_overrides_may_stand_anywhere_even_after_nargs_options():
 def test_run_help_names_every_method_it_accepts(capsys):
     with pytest.raises(SystemExit):
         main(["run", "--help"])
-    assert "experiment.METHODS" in capsys.readouterr().out
+    assert "methods.METHODS" in capsys.readouterr().out
     assert main(["run", "lunarlander", "--methods", "nothing"]) == 2
     line = capsys.readouterr().err
     assert all(method in line for method in METHODS)
@@ -152,7 +152,7 @@ def test_run_help_names_every_method_it_accepts(capsys):
         (["pretrain", "lunarlander", "optim.lr=-1e-3"], ["optim.lr: expected a value > 0"]),
         (["pretrain", "uav", "env=3"], ["env: expected a group of keys"]),
         (["pretrain", "lunarlander", "train.episodes"], ["override 'train.episodes' is not of the form key=value"]),
-        (["run", "lunarlander", "protocol.validation_scenarios=-4"], ["protocol.validation_scenarios", ">= 1", "-4"]),
+        (["run", "lunarlander", "scenarios.validation_scenarios=-4"], ["scenarios.validation_scenarios", ">= 1", "-4"]),
         (["run", "uav", "pretrain.seeds=[a]"], ["pretrain.seeds: expected a list of ints"]),
         (["run", "lunarlander", "--operators", "nobody"], ["unknown operator preset 'nobody'", "expert"]),
         (["run", "lunarlander", "--methods", "nothing"], ["unknown method 'nothing'"]),
@@ -271,7 +271,7 @@ def test_a_run_killed_after_its_first_cell_resumes_to_the_same_csvs(full_run, ma
     calls = []
 
     def killed_at_second_cell(*args, **kwargs):
-        calls.append(args[2])
+        calls.append(kwargs["operator_name"])
         if len(calls) == 2:
             raise KeyboardInterrupt
         return real(*args, **kwargs)
@@ -323,7 +323,7 @@ def test_an_old_folder_without_a_record_is_refused_and_fresh_starts_over(tmp_pat
 
 # -- logs and Ctrl-C --------------------------------------------------------------------
 def test_building_an_env_logs_no_torchrl_info(monkeypatch):
-    from dcsc_torchrl.tasks import make_lunar_env
+    from dcsc_torchrl.batched_envs import make_lunar_env
 
     monkeypatch.delenv("DCSC_VERBOSE", raising=False)
     records: list[logging.LogRecord] = []

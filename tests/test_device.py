@@ -11,15 +11,11 @@ from torchrl.data import Bounded, OneHot
 from torchrl.envs import TransformedEnv
 
 from dcsc_torchrl.arbiters import FrozenConfidenceArbiter
+from dcsc_torchrl.batched_envs import make_uav_env
 from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.config import load_config
-from dcsc_torchrl.experiment import (
-    METHODS,
-    OnlineLearner,
-    build_policy,
-    make_arbiter,
-    make_operator,
-)
+from dcsc_torchrl.methods import METHOD_NAMES as METHODS
+from dcsc_torchrl.methods import build_policy, make_arbiter
 from dcsc_torchrl.networks import (
     lunar_actor,
     lunar_critic,
@@ -27,7 +23,8 @@ from dcsc_torchrl.networks import (
     uav_actor,
     uav_critic,
 )
-from dcsc_torchrl.tasks import make_uav_env
+from dcsc_torchrl.online import make_online_learner
+from dcsc_torchrl.tasks import get_task
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
 from recipes.pretrain_ddpg_uav import main as pretrain_uav
 from recipes.shared_control import RECIPES
@@ -42,7 +39,7 @@ def all_on(td: TensorDictBase, device: str) -> bool:
 
 def uav_env_with_operator(device: str, cfg: DictConfig) -> TransformedEnv:
     """Four UAV scenarios on ``device`` with the expert operator and its confidence, as the protocol builds them."""
-    transforms = [HumanOperatorTransform(make_operator("uav", "expert"), seed=0),
+    transforms = [HumanOperatorTransform(get_task("uav").make_operator("expert"), seed=0),
                   HumanConfidenceTransform(**cfg.human)]
     return make_uav_env(4, scenario_seeds=[0, 1, 2, 3], device=device, max_steps=40, transforms=transforms)
 
@@ -63,14 +60,15 @@ def test_batched_uav_env_steps_on_the_device(device):
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("method", METHODS)
 def test_every_arbiter_blends_on_the_device(device, method):
-    cfg = load_config(RECIPES / "shared_control_uav.yaml", quick=True)
+    cfg = load_config(RECIPES / get_task("uav").config, quick=True)
     env = uav_env_with_operator(device, cfg)
     if method == "dcsc_frozen":  # built by the protocol from a learned arbiter
-        arbiter = FrozenConfidenceArbiter(make_arbiter("dcsc_centred", "uav", theta_init=0.0, hula_threshold=None),
+        arbiter = FrozenConfidenceArbiter(make_arbiter("dcsc_centred", 3, theta_init=0.0),
                                           0.5, 0.3)
     else:
-        arbiter = make_arbiter(method, "uav", theta_init=1.0, hula_threshold=0.01, constant_beta=0.4)
-    policy = build_policy(uav_actor([16], 0.05).to(device), arbiter, "uav", cfg, action_spec(device))
+        arbiter = make_arbiter(method, 3, theta_init=1.0, hula_threshold=0.01, constant_beta=0.4)
+    policy = build_policy(uav_actor([16], 0.05).to(device), arbiter, action_spec(device), discrete=False,
+                          **cfg.machine)
     td = policy.to(device)(env.reset())
     assert all_on(td, device)
     assert ((td["action"] >= 0) & (td["action"] <= 3)).all() and td["beta"].shape == (4, 3)
@@ -78,13 +76,12 @@ def test_every_arbiter_blends_on_the_device(device, method):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_ddpg_loss_with_the_shared_policy_learns_theta_on_the_device(device):
-    cfg = load_config(RECIPES / "shared_control_uav.yaml", quick=True)
+    cfg = load_config(RECIPES / get_task("uav").config, quick=True)
     env = uav_env_with_operator(device, cfg)
     torch.manual_seed(0)
-    policy = build_policy(uav_actor([16], 0.05).to(device), make_arbiter("dcsc", "uav", theta_init=1.0,
-                                                                         hula_threshold=None),
-                          "uav", cfg, action_spec(device)).to(device)
-    learner = OnlineLearner(policy, uav_critic([16]).to(device), theta_lr=0.1, critic_lr=1e-3, gamma=0.99, tau=0.01)
+    policy = build_policy(uav_actor([16], 0.05).to(device), make_arbiter("dcsc", 3, theta_init=1.0),
+                          action_spec(device), discrete=False, **cfg.machine).to(device)
+    learner = make_online_learner(policy, uav_critic([16]).to(device), theta_lr=0.1, critic_lr=1e-3, gamma=0.99, tau=0.01)
     theta = policy["arbiter"].theta.detach().clone()
     collector = Collector(env, policy, frames_per_batch=20, total_frames=40, auto_register_policy_transforms=False)
     for batch in collector:
@@ -98,11 +95,10 @@ def test_ddpg_loss_with_the_shared_policy_learns_theta_on_the_device(device):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_theta_loss_learns_theta_on_the_device(device):
-    cfg = load_config(RECIPES / "shared_control_lunarlander.yaml", quick=True)
+    cfg = load_config(RECIPES / get_task("lunarlander").config, quick=True)
     torch.manual_seed(0)
-    policy = build_policy(lunar_actor([16], 0.1).to(device), make_arbiter("dcsc", "lunarlander", theta_init=1.0,
-                                                                          hula_threshold=None),
-                          "lunarlander", cfg, OneHot(4)).to(device)
+    policy = build_policy(lunar_actor([16], 0.1).to(device), make_arbiter("dcsc", 1, theta_init=1.0), OneHot(4),
+                          discrete=True, **cfg.machine).to(device)
     n = 8
     batch = TensorDict({
         "observation": torch.randn(n, 9),
@@ -112,7 +108,7 @@ def test_theta_loss_learns_theta_on_the_device(device):
                  "done": torch.zeros(n, 1, dtype=torch.bool), "terminated": torch.zeros(n, 1, dtype=torch.bool)},
     }, [n], device=device)
     batch = policy(batch)
-    learner = OnlineLearner(policy, lunar_critic([16], 4).to(device), theta_lr=0.1, critic_lr=1e-3, gamma=0.99,
+    learner = make_online_learner(policy, lunar_critic([16], 4).to(device), theta_lr=0.1, critic_lr=1e-3, gamma=0.99,
                             tau=0.01)
     theta = policy["arbiter"].theta.detach().clone()
     learner(batch)
@@ -126,5 +122,5 @@ def test_ddpg_pretraining_runs_on_the_device(device, tmp_path):
     pretrain_uav(["--quick", "--out", str(tmp_path), f"device={device}", "train.episodes=3"])
     data = load_checkpoint(tmp_path / "checkpoint.pt", task="uav")  # loads on the CPU whatever the device
     assert data["episodes"] == 3 and data["config"]["device"] == device
-    machine, _ = machine_from_checkpoint(data, "uav")
+    machine, _ = machine_from_checkpoint(data, get_task("uav"))
     assert next(machine.parameters()).device.type == "cpu"

@@ -22,4 +22,6 @@ def test_doc_examples_run(doc, capsys):
     namespace: dict = {}
     for block in blocks:
         exec(compile(block, f"{doc}", "exec"), namespace)
-    assert "theta after 500 frames" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "theta after 500 frames" in out
+    assert "validation: ['dcsc_centred', 'hula', 'operator']" in out  # a custom operator ran the whole protocol

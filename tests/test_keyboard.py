@@ -11,6 +11,7 @@ from tensordict import TensorDict
 from torchrl.envs import GymWrapper, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
+from dcsc_torchrl.batched_envs import LUNAR_ID
 from dcsc_torchrl.checkpoint import save_checkpoint
 from dcsc_torchrl.humans import KeyboardPilot, NoDisplayError
 from dcsc_torchrl.humans.play import (
@@ -24,7 +25,6 @@ from dcsc_torchrl.humans.play import (
     play_config,
 )
 from dcsc_torchrl.networks import lunar_actor, lunar_critic
-from dcsc_torchrl.tasks import LUNAR_ID
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
 
 FPS = 50

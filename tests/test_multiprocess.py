@@ -14,9 +14,9 @@ from tensordict.nn import TensorDictModule
 from torchrl.envs.utils import RandomPolicy
 from torchrl.modules import OneHotCategorical, ProbabilisticActor
 
+from dcsc_torchrl.batched_envs import make_lunar_env, make_uav_env
 from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.networks import lunar_actor
-from dcsc_torchrl.tasks import make_lunar_env, make_uav_env
 from dcsc_torchrl.training import make_collector
 
 RECIPES = {"lunarlander": "recipes.pretrain_a2c_lunarlander", "uav": "recipes.pretrain_ddpg_uav"}
@@ -29,7 +29,7 @@ def test_two_collector_workers_write_the_same_train_csv(task, tmp_path):
     log = pd.read_csv(tmp_path / "train.csv")
     assert list(log.columns) == recipe.COLUMNS
     assert log["episode"].tolist() == [1, 2, 3]
-    assert log[["frames", "return", "length"]].map(math.isfinite).all().all()
+    assert log[["frames", "return", "steps"]].map(math.isfinite).all().all()
     losses = log[recipe.COLUMNS[5:]].dropna()
     assert len(losses) > 0 and losses.map(math.isfinite).all().all()
     assert load_checkpoint(tmp_path / "checkpoint.pt", task=task)["episodes"] == 3

@@ -12,6 +12,7 @@ from scipy.stats import exponnorm
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
+from dcsc_torchrl.batched_envs import make_lunar_env, make_uav_env
 from dcsc_torchrl.humans import (
     PRESETS,
     OperatorTraits,
@@ -21,7 +22,6 @@ from dcsc_torchrl.humans import (
     operator_only_policy,
 )
 from dcsc_torchrl.humans.traits import EnvStreams
-from dcsc_torchrl.tasks import make_lunar_env, make_uav_env
 from dcsc_torchrl.transforms import HumanOperatorTransform
 from envs.uav import DT, N_OBSTACLE_PARAMS, ObstacleParam
 

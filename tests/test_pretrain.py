@@ -23,9 +23,9 @@ RECIPES = {
     "uav": "recipes.pretrain_ddpg_uav",
 }
 COLUMNS = {
-    "lunarlander": ["episode", "frames", "return", "length", "success", "loss_objective", "loss_critic",
+    "lunarlander": ["episode", "frames", "return", "steps", "success", "loss_objective", "loss_critic",
                     "loss_entropy", "loss_qvalue"],
-    "uav": ["episode", "frames", "return", "length", "success", "loss_actor", "loss_value"],
+    "uav": ["episode", "frames", "return", "steps", "success", "loss_actor", "loss_value"],
 }
 
 

@@ -10,12 +10,14 @@ import torch
 from torchrl.collectors import Collector
 
 from dcsc_torchrl.checkpoint import load_checkpoint
-from dcsc_torchrl.config import load_config
-from dcsc_torchrl.experiment import METHODS, OnlineLearner, build_policy, make_arbiter, make_env
+from dcsc_torchrl.methods import METHOD_NAMES as METHODS
+from dcsc_torchrl.methods import build_policy, make_arbiter
 from dcsc_torchrl.networks import machine_from_checkpoint
+from dcsc_torchrl.online import DiscreteOnlineLearner
+from dcsc_torchrl.tasks import get_task
+from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
 from recipes.reproduce import reproduce
-from recipes.shared_control import RECIPES
-from recipes.shared_control import main as shared_control
+from recipes.shared_control import run_task, task_config
 
 EPISODE_COLUMNS = {"task", "method", "operator", "pretrain_seed", "phase", "group", "seed", "success", "steps",
                    "return", "path_length", "hula_threshold"}
@@ -83,7 +85,7 @@ def test_hula_hands_control_to_the_operator_exactly_above_the_threshold(quick_ru
 def test_same_seed_gives_identical_episodes_csv(quick_run, tmp_path):
     root, _ = quick_run
     pretrained = root / "runs" / "quick" / "pretrain_lunarlander"
-    shared_control(["lunarlander", "--quick", "--out", str(tmp_path), f"pretrain.out_dir={pretrained}"])
+    run_task("lunarlander", quick=True, out=tmp_path, overrides=[f"pretrain.out_dir={pretrained}"])
     again = pd.read_csv(tmp_path / "lunarlander" / "episodes.csv")
     first = pd.read_csv(root / "results" / "quick" / "lunarlander" / "episodes.csv")
     pd.testing.assert_frame_equal(again, first)
@@ -91,18 +93,20 @@ def test_same_seed_gives_identical_episodes_csv(quick_run, tmp_path):
 
 def test_first_theta_update_follows_the_sign_of_eq19(quick_run):
     root, _ = quick_run
-    cfg = load_config(RECIPES / "shared_control_lunarlander.yaml", quick=True)
+    task = get_task("lunarlander")
+    cfg = task_config(task, quick=True)
     data = load_checkpoint(root / "runs" / "quick" / "pretrain_lunarlander" / "seed0" / "checkpoint.pt",
                            task="lunarlander")
-    machine, critic = machine_from_checkpoint(data, "lunarlander")
-    env = make_env("lunarlander", cfg, "noisy", [0, 1, 2, 3], operator_seed=0)
-    policy = build_policy(machine, make_arbiter("dcsc", "lunarlander", theta_init=0.5, hula_threshold=None),
-                          "lunarlander", cfg, env.full_action_spec["action"])
+    machine, critic = machine_from_checkpoint(data, task)
+    env = task.make_envs([0, 1, 2, 3], cfg.protocol.max_steps,
+                         [HumanOperatorTransform(task.make_operator("noisy"), seed=0), HumanConfidenceTransform(**cfg.human)])
+    policy = build_policy(machine, make_arbiter("dcsc", task.action_dims, theta_init=0.5),
+                          env.full_action_spec["action"], discrete=True, **cfg.machine)
     torch.manual_seed(0)
     collector = Collector(env, policy, frames_per_batch=40, total_frames=40, auto_register_policy_transforms=False)
     batch = next(iter(collector)).reshape(-1)
     collector.shutdown()
-    learner = OnlineLearner(policy, critic, theta_lr=0.1, critic_lr=1e-4, gamma=0.99, tau=1e-3)
+    learner = DiscreteOnlineLearner(policy, critic, theta_lr=0.1, critic_lr=1e-4, gamma=0.99, tau=1e-3)
     with torch.no_grad():
         theta = policy["arbiter"].theta.clone()
         b = batch["confidence_ratio"]

@@ -21,10 +21,10 @@ from dcsc_torchrl.arbiters import (
     centred_fusion_weight,
 )
 from dcsc_torchrl.confidence import machine_confidence
-from dcsc_torchrl.experiment import OnlineLearner
 from dcsc_torchrl.losses import ThetaLoss
 from dcsc_torchrl.machine import MCDropoutPolicy, calibrated_uncertainty_scale
 from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_critic
+from dcsc_torchrl.online import DiscreteOnlineLearner
 from dcsc_torchrl.policy import SharedPolicyModule
 from dcsc_torchrl.transforms import HumanConfidenceTransform
 
@@ -148,7 +148,7 @@ def scripted_batch(policy: SharedPolicyModule, machine_key: int, human_key: int,
 def test_theta_moves_towards_the_partner_that_is_right(arbiter, right, towards):
     """The machine always presses key 0, the operator key 1; the critic values only ``right``."""
     policy = SharedPolicyModule(MCDropoutPolicy(dropout_net()), arbiter(), OneHot(4))
-    learner = OnlineLearner(policy, _Scripted(right), theta_lr=0.5, critic_lr=0.0, gamma=0.99, tau=1e-3,
+    learner = DiscreteOnlineLearner(policy, _Scripted(right), theta_lr=0.5, critic_lr=0.0, gamma=0.99, tau=1e-3,
                             updates_per_batch=5)
     before = policy["arbiter"].theta.item()
     batch = scripted_batch(policy, machine_key=0, human_key=1)

@@ -12,11 +12,12 @@ import torch
 
 from dcsc_torchrl.cli import _sweep, build_parser
 from dcsc_torchrl.config import load_config
-from dcsc_torchrl.experiment import run_cell
-from recipes.shared_control import RECIPES, pretrained_machine, write_csv
+from dcsc_torchrl.protocol import run_cell
+from dcsc_torchrl.tasks import get_task
+from recipes.shared_control import RECIPES, cell_settings, pretrained_machine, write_csv
 from recipes.sweep import TABLES, main, split_overrides
 
-PROTOCOL = ["protocol.operator_runs=1", "protocol.collaboration_runs=1", "protocol.validation_scenarios=2",
+PROTOCOL = ["scenarios.operator_runs=1", "scenarios.collaboration_runs=1", "scenarios.validation_scenarios=2",
             "protocol.group_size=1", "protocol.max_steps=60"]
 METHODS = ["machine", "dcsc"]
 
@@ -61,9 +62,11 @@ def test_sweep_gives_the_rows_of_the_cells_run_one_after_another(grid_sweep, pre
         tables: dict[str, list[dict]] = {name: [] for name in TABLES}
         for seed in (0, 1):
             for preset in ("expert", "noisy"):
-                machine, critic = pretrained_machine("lunarlander", cfg, seed, quick=True)
-                cell = run_cell("lunarlander", cfg, preset, seed, machine, critic, methods=tuple(METHODS),
-                                trace=(preset, seed) == ("expert", 0))
+                task = get_task("lunarlander")
+                machine, critic = pretrained_machine(task, cfg, seed, quick=True)
+                cell = run_cell(task, task.make_operator(preset), machine, critic, operator_name=preset,
+                                pretrain_seed=seed, methods=tuple(METHODS), trace=(preset, seed) == ("expert", 0),
+                                **cell_settings(cfg))
                 tables["episodes"] += cell.episodes
                 tables["trace"] += cell.traces
                 tables["theta"] += cell.theta

@@ -33,8 +33,8 @@ def operator_only_episodes(
     """Runs every env of a batch until its first episode ends (or ``max_steps``).
 
     ``env`` must carry a :class:`~dcsc_torchrl.transforms.HumanOperatorTransform`,
-    ``RewardSum`` and ``StepCounter`` (as :func:`dcsc_torchrl.tasks.make_lunar_env` and
-    :func:`~dcsc_torchrl.tasks.make_uav_env` build them) and write ``success``. Seed it
+    ``RewardSum`` and ``StepCounter`` (as :func:`dcsc_torchrl.batched_envs.make_lunar_env` and
+    :func:`~dcsc_torchrl.batched_envs.make_uav_env` build them) and write ``success``. Seed it
     (``env.set_seed``) before calling for reproducible episodes.
 
     Args:

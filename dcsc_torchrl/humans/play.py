@@ -7,7 +7,7 @@ The frames of a ``render_mode="rgb_array"`` TargetLunarLander go to the
 pretrained machine (MC dropout, Eqs. 10, 13) shares control with you through the learned
 arbiter of the simulated runs (``arbiter.form`` of ``recipes/shared_control_lunarlander.yaml``),
 and theta and the Q critic learn online as in Algorithm 1, once every
-``online.rollout_length`` frames; b_h, b_m and beta are drawn live on screen. Alone, your
+``protocol.rollout_length`` frames; b_h, b_m and beta are drawn live on screen. Alone, your
 b_h (Eqs. 6, 9) and last RT are.
 
 Every play writes what the simulated runs write, into ``--out`` (default
@@ -37,16 +37,17 @@ from torchrl.envs import Compose, GymWrapper, RewardSum, StepCounter, Transforme
 from torchrl.envs.libs.gym import default_info_dict_reader
 from torchrl.envs.utils import step_mdp
 
+from dcsc_torchrl.batched_envs import LUNAR_ID, LUNAR_INFO_KEYS
 from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.humans.evaluate import operator_only_policy
 from dcsc_torchrl.humans.keyboard import KeyboardPilot, NoDisplayError
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.runlog import RunLog
-from dcsc_torchrl.tasks import LUNAR_ID, LUNAR_INFO_KEYS
+from dcsc_torchrl.tasks import get_task
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
 
-TASK = "lunarlander"
-CONFIG_NAME = "shared_control_lunarlander.yaml"
+TASK = get_task("lunarlander")
+"""The task a person plays at the keyboard (its four keys)."""
 PHASE = "play"
 _STATUS_KEYS = (
     ("human_confidence", "b_h (you)"),
@@ -65,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     from dcsc_torchrl.cli import add_play_options
 
     parser = argparse.ArgumentParser(prog="dcsc play", description=__doc__.split("\n\n")[0])
-    parser.add_argument("task", choices=[TASK])
+    parser.add_argument("task", choices=[TASK.name])
     return add_play_options(parser)
 
 
@@ -74,7 +75,7 @@ def play_config() -> DictConfig:
     from dcsc_torchrl.cli import recipes_dir
     from dcsc_torchrl.config import load_config
 
-    return load_config(recipes_dir() / CONFIG_NAME)
+    return load_config(recipes_dir() / TASK.config)
 
 
 def load_machine(path: Path) -> tuple[nn.Module, nn.Module]:
@@ -84,7 +85,7 @@ def load_machine(path: Path) -> tuple[nn.Module, nn.Module]:
             f"no LunarLander checkpoint at {path}: run `dcsc pretrain lunarlander` first, "
             "pass --checkpoint PATH, or fly alone with --assist none"
         )
-    return machine_from_checkpoint(load_checkpoint(path, task=TASK), TASK)
+    return machine_from_checkpoint(load_checkpoint(path, task=TASK.name), TASK)
 
 
 def make_play_env(
@@ -101,30 +102,29 @@ def make_play_env(
 
 def assist_method(cfg: DictConfig) -> str:
     """The method name of the learned arbiter the config's ``arbiter.form`` picks."""
-    from dcsc_torchrl.experiment import LEARNED_FORMS
+    from dcsc_torchrl.methods import learned_method
 
-    return next(method for method, form in LEARNED_FORMS.items() if form == cfg.arbiter.form)
+    return learned_method(cfg.arbiter.form)
 
 
 def make_policy(env: TransformedEnv, machine: nn.Module | None, cfg: DictConfig | None = None) -> TensorDictModuleBase:
     """DC-SC's shared policy around ``machine`` (as the simulated runs build it), or the pilot alone."""
     if machine is None:
         return operator_only_policy()
-    from dcsc_torchrl.experiment import build_policy, make_arbiter
+    from dcsc_torchrl.methods import build_policy, make_arbiter
+    from dcsc_torchrl.protocol import ArbiterSettings
 
     cfg = play_config() if cfg is None else cfg
     method = assist_method(cfg)
-    form = cfg.arbiter[cfg.arbiter.form]
-    arbiter = make_arbiter(method, TASK, theta_init=form.theta_init, gain=cfg.arbiter.centred.gain,
-                           hula_threshold=None)
-    return build_policy(machine, arbiter, TASK, cfg, env.full_action_spec["action"])
+    arbiter = make_arbiter(method, TASK.action_dims, **ArbiterSettings(**cfg.arbiter).start(method))
+    return build_policy(machine, arbiter, env.full_action_spec["action"], discrete=TASK.discrete, **cfg.machine)
 
 
 def make_learner(policy: TensorDictModuleBase, critic: nn.Module, cfg: DictConfig) -> Any:
     """Algorithm 1's online learner (theta and the critic) with the simulated runs' settings."""
-    from dcsc_torchrl.experiment import make_online_learner
+    from dcsc_torchrl.online import make_online_learner
 
-    return make_online_learner(policy, critic, cfg.online)
+    return make_online_learner(policy, critic, **cfg.online)
 
 
 def status_lines(tensordict: TensorDictBase) -> list[str]:
@@ -144,7 +144,7 @@ def _cell(value: Any) -> Any:
 class PlayRecorder:
     """Appends a play's frames to ``trace.csv`` and its episodes to ``episodes.csv`` in ``out``.
 
-    Trace rows are formatted by the simulated runs' own :func:`~dcsc_torchrl.experiment._trace_rows`;
+    Trace rows are formatted by the simulated runs' own :func:`~dcsc_torchrl.episodes.trace_rows`;
     without a machine (``--assist none``) the machine's columns are empty. Frames are
     buffered and written every :meth:`flush` (the play calls it every few frames, at each
     episode's end and on the way out, Ctrl-C included).
@@ -159,7 +159,7 @@ class PlayRecorder:
     def __init__(self, out: Path, method: str, participant: str, pretrain_seed: int | None = None) -> None:
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
-        self.base = {"task": TASK, "operator": participant, "pretrain_seed": pretrain_seed, "method": method,
+        self.base = {"task": TASK.name, "operator": participant, "pretrain_seed": pretrain_seed, "method": method,
                      "phase": PHASE}
         self.session = time.strftime("%Y%m%dT%H%M%S")
         self.episodes = RunLog(self.out / "episodes.csv", EPISODE_COLUMNS)
@@ -168,7 +168,7 @@ class PlayRecorder:
 
     def frame(self, tensordict: TensorDictBase, *, seed: int, episode: int, step: int) -> None:
         """Buffers one frame (the TensorDict after ``env.step``, ``next`` included)."""
-        from dcsc_torchrl.experiment import _trace_rows
+        from dcsc_torchrl.episodes import trace_rows
 
         frame = tensordict.copy()  # shallow: the keys set below stay here
         machine = "machine_probs" in frame.keys()
@@ -178,7 +178,7 @@ class PlayRecorder:
                 frame.set(key, nan)
             frame.set("beta", torch.zeros(1))
             frame.set("machine_probs", frame.get("human_action").float())
-        row = _trace_rows(frame.unsqueeze(0), TASK)[0]
+        row = trace_rows(frame.unsqueeze(0), TASK)[0]
         row["step"] = step
         if not machine:
             row["machine_action"] = None
@@ -215,7 +215,7 @@ def play(
     """Flies ``episodes`` episodes (fewer if the pilot quits); one summary dict per finished episode.
 
     Episode ``i`` plays scenario ``seed + i`` (the pad the simulated runs draw for that
-    seed). With a ``learner`` (an :class:`~dcsc_torchrl.experiment.OnlineLearner`), every
+    seed). With a ``learner`` (an :class:`~dcsc_torchrl.online.OnlineLearner`), every
     ``rollout_length`` frames are handed to it as a batch ``[1, rollout_length]``
     (Algorithm 1: theta and the critic learn while the person flies). With a
     ``recorder``, every frame and every finished episode is written.
@@ -293,7 +293,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     print("arrow keys (or W/A/D): up = main engine, left/right = side engines; Esc quits")
     try:
         summaries = play(env, policy, pilot, args.episodes, seed=args.seed, learner=learner,
-                         rollout_length=int(cfg.online.rollout_length), recorder=recorder)
+                         rollout_length=int(cfg.protocol.rollout_length), recorder=recorder)
     finally:
         pilot.close()
     for summary in summaries:

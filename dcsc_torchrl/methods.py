@@ -1,0 +1,152 @@
+"""The method registry: every method of the protocol is the common pipeline with its own arbiter.
+
+A :class:`Method` names an arbiter and says how the protocol runs it (``kind``):
+
+============  ========  ================================================================
+machine       fixed     :class:`MachineOnlyArbiter` (A2C / DDPG alone)
+operator      fixed     :class:`HumanOnlyArbiter` (the operator alone)
+hula          fixed     :class:`HULAArbiter` (threshold calibrated on the operator-alone runs)
+dcsc          learned   :class:`ConfidenceArbiter` (Eq. 15 as printed), theta learned online
+dcsc_centred  learned   :class:`CentredConfidenceArbiter`, theta learned online
+dcsc_frozen   frozen    a learned arbiter fed its confidences' collaboration means
+                        (:class:`FrozenConfidenceArbiter`): what the confidences add
+constant      sweep     :class:`ConstantArbiter`, once per beta of a sweep (its best beta
+                        is the report's oracle row ``best_constant``)
+============  ========  ================================================================
+
+Examples:
+    >>> [m.name for m in METHODS.values() if m.kind == "learned"]
+    ['dcsc', 'dcsc_centred']
+    >>> learned_method("centred")
+    'dcsc_centred'
+    >>> make_arbiter("constant", 3, constant_beta=0.25).value
+    0.25
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import torch
+    from torchrl.data import TensorSpec
+
+    from dcsc_torchrl.arbiters import Arbiter
+    from dcsc_torchrl.policy import SharedPolicyModule
+
+
+@dataclass(frozen=True)
+class Method:
+    """One method of the protocol.
+
+    Args:
+        name: the method's name in CSVs and on the command line.
+        label: its name in tables and figures (``machine`` reads the task's ``machine_label``).
+        kind: ``fixed`` (validated as it is), ``learned`` (collaborates, then validates,
+            learning online), ``frozen`` (the ablation of a learned arbiter) or ``sweep``
+            (once per constant beta).
+        form: the arbiter form of a learned method (``paper`` or ``centred``).
+    """
+
+    name: str
+    label: str
+    kind: str
+    form: str | None = None
+
+
+METHODS: dict[str, Method] = {
+    method.name: method
+    for method in (
+        Method("machine", "machine", "fixed"),
+        Method("operator", "operator", "fixed"),
+        Method("hula", "HULA", "fixed"),
+        Method("dcsc", "DC-SC (Eq. 15)", "learned", form="paper"),
+        Method("dcsc_centred", "DC-SC (centred)", "learned", form="centred"),
+        Method("dcsc_frozen", "DC-SC, confidences frozen", "frozen"),
+        Method("constant", "constant β", "sweep"),
+    )
+}
+"""Every method, in the order of the protocol and the report."""
+METHOD_NAMES = tuple(METHODS)
+BEST_CONSTANT = Method("best_constant", "best constant β (oracle)", "oracle")
+"""The report's row for the sweep's best beta (picked on the scenarios it is scored on)."""
+ARBITER_FORMS = tuple(m.form for m in METHODS.values() if m.kind == "learned")
+
+
+def learned_method(form: str) -> str:
+    """The learned method whose arbiter has ``form`` (``paper`` -> ``dcsc``, ``centred`` -> ``dcsc_centred``)."""
+    for method in METHODS.values():
+        if method.kind == "learned" and method.form == form:
+            return method.name
+    raise ValueError(f"arbiter form must be one of {', '.join(ARBITER_FORMS)}, got {form!r}")
+
+
+def make_arbiter(
+    method: str,
+    action_dims: int,
+    *,
+    theta_init: float = 0.0,
+    gain: float = 3.0,
+    hula_threshold: float | None = None,
+    constant_beta: float | None = None,
+) -> Arbiter:
+    """The arbiter that makes ``method`` out of the common pipeline (``action_dims`` betas).
+
+    ``dcsc`` is :class:`ConfidenceArbiter` (Eq. 15, ``theta_init``), ``dcsc_centred``
+    :class:`CentredConfidenceArbiter` (``theta_init``, ``gain``), ``hula`` a
+    :class:`HULAArbiter` of ``hula_threshold``, ``constant`` a :class:`ConstantArbiter`
+    of ``constant_beta``. ``dcsc_frozen`` wraps a learned arbiter
+    (:class:`FrozenConfidenceArbiter`), so the protocol builds it.
+    """
+    from dcsc_torchrl import arbiters
+
+    if method == "machine":
+        return arbiters.MachineOnlyArbiter(action_dims)
+    if method == "operator":
+        return arbiters.HumanOnlyArbiter(action_dims)
+    if method == "hula":
+        if hula_threshold is None:
+            raise ValueError("the HULA arbiter needs a threshold: calibrate it on the operator-alone runs")
+        return arbiters.HULAArbiter(hula_threshold, action_dims)
+    if method == "dcsc":
+        return arbiters.ConfidenceArbiter(theta_init, action_dims)
+    if method == "dcsc_centred":
+        return arbiters.CentredConfidenceArbiter(theta_init, action_dims, gain=gain)
+    if method == "constant":
+        if constant_beta is None:
+            raise ValueError("the constant arbiter needs constant_beta")
+        return arbiters.ConstantArbiter(constant_beta, action_dims)
+    built_here = [name for name in METHOD_NAMES if name != "dcsc_frozen"]
+    raise ValueError(f"method must be one of {', '.join(built_here)}, got {method!r}")
+
+
+def build_policy(
+    machine_net: torch.nn.Module,
+    arbiter: Arbiter,
+    action_spec: TensorSpec,
+    *,
+    discrete: bool,
+    num_samples: int,
+    lam: float,
+    delta2: float,
+    tau_inv: float = 0.0,
+    uncertainty_scale: float = 1.0,
+    observation_size: int | None = None,
+) -> SharedPolicyModule:
+    """The shared policy of Eq. 14: the frozen pretrained machine under MC dropout, and ``arbiter``.
+
+    ``discrete`` picks the machine's output (key probabilities or a continuous action);
+    ``num_samples``, ``lam``, ``delta2``, ``tau_inv`` and ``uncertainty_scale`` are
+    :class:`MCDropoutPolicy`'s (Eqs. 10-13). ``observation_size`` is the env's
+    observation width: the LunarLander actor keeps only the first 8 of its 9 values, so
+    without it a wider observation would be cut without a word.
+    """
+    from dcsc_torchrl.machine import MCDropoutPolicy
+    from dcsc_torchrl.policy import SharedPolicyModule
+
+    machine = MCDropoutPolicy(
+        machine_net, output="probs" if discrete else "action", num_samples=num_samples, lam=lam, delta2=delta2,
+        tau_inv=tau_inv, uncertainty_scale=uncertainty_scale, observation_size=observation_size,
+    )
+    return SharedPolicyModule(machine, arbiter, action_spec)

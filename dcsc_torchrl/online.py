@@ -1,0 +1,248 @@
+"""Algorithm 1 online: theta (Eq. 19) and the critic learn from every collected batch.
+
+One small class per action kind, as TorchRL has one loss per algorithm:
+
+- :class:`DiscreteOnlineLearner` (LunarLander): :class:`ThetaLoss`, i.e. ``-sum_a pi_theta Q``
+  plus the Q critic's TD loss;
+- :class:`ContinuousOnlineLearner` (UAV): TorchRL's ``DDPGLoss`` with the shared policy as
+  actor and only theta trainable (its actor loss has the gradient of Eq. 19), the
+  critic's TD loss keeping it adapting.
+
+:func:`make_online_learner` picks the class from the policy. Both soft-update their
+target critic with ``SoftUpdate`` and keep :attr:`OnlineLearner.history`, one row per
+update (theta, its gradient, both losses).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
+from torchrl.modules import ValueOperator
+from torchrl.objectives import DDPGLoss, LossModule, SoftUpdate, ValueEstimators
+
+from dcsc_torchrl.losses import ThetaLoss
+from dcsc_torchrl.policy import SharedPolicyModule
+
+THETA_OPTIMIZERS = {"sgd": torch.optim.SGD, "adam": torch.optim.Adam}
+WARMUP_TARGETS = ("td", "return")
+
+
+class OnlineLearner(ABC):
+    """The updates of Algorithm 1 shared by both action kinds, once per collected batch.
+
+    Each collected batch gives ``updates_per_batch`` gradient steps of theta and the
+    critic (every step on the whole batch). Subclasses build :attr:`loss` and say which of
+    its terms are the critic's and theta's.
+
+    Args:
+        policy: the DC-SC shared policy (its arbiter holds theta).
+        critic: the pretrained critic network (``Q(s, .)`` or ``Q(s, a)``), trained on.
+        theta_lr: alpha of Algorithm 1 (line 15).
+        critic_lr: beta of Algorithm 1 (line 12).
+        gamma: discount factor.
+        tau: soft-update rate of the target critic.
+        updates_per_batch: gradient steps per collected batch (>= 1).
+        theta_optimizer: ``"sgd"`` (Algorithm 1 line 15 as printed: ``theta += alpha
+            grad J``) or ``"adam"`` (the same ascent direction, steps of about ``alpha`` in
+            theta's own units whatever the scale of Q: one step size serves both tasks).
+    """
+
+    loss: LossModule
+
+    def __init__(
+        self, policy: SharedPolicyModule, critic: torch.nn.Module, *, theta_lr: float, critic_lr: float,
+        gamma: float, tau: float, updates_per_batch: int = 1, theta_optimizer: str = "sgd",
+    ) -> None:
+        if int(updates_per_batch) != updates_per_batch or updates_per_batch < 1:
+            raise ValueError(f"updates_per_batch must be an integer >= 1, got {updates_per_batch!r}")
+        if theta_optimizer not in THETA_OPTIMIZERS:
+            raise ValueError(f"theta_optimizer must be one of {sorted(THETA_OPTIMIZERS)}, got {theta_optimizer!r}")
+        self.policy = policy
+        self.critic = critic
+        self.gamma = float(gamma)
+        self.updates_per_batch = int(updates_per_batch)
+        self.loss = self._make_loss(policy, critic)
+        self.targets = SoftUpdate(self.loss, tau=tau)
+        self.theta_optim = THETA_OPTIMIZERS[theta_optimizer]([policy["arbiter"].theta], lr=theta_lr)
+        self.critic_optim = torch.optim.Adam(list(self.critic_params.values(True, True)), lr=critic_lr)
+        self.history: list[dict[str, Any]] = []
+
+    # -- what each action kind defines ----------------------------------------------------
+    @abstractmethod
+    def _make_loss(self, policy: SharedPolicyModule, critic: torch.nn.Module) -> LossModule:
+        """The TorchRL loss holding the critic (and its target) and theta's term."""
+
+    @property
+    @abstractmethod
+    def critic_params(self) -> TensorDictBase:
+        """The critic's trainable parameters inside :attr:`loss`."""
+
+    @abstractmethod
+    def critic_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        """The critic's TD loss on a flat batch (Algorithm 1, lines 9-12)."""
+
+    @abstractmethod
+    def theta_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        """The loss whose theta-gradient is minus Eq. 19, on a flat batch."""
+
+    @abstractmethod
+    def taken_value(self, frames: TensorDictBase) -> torch.Tensor:
+        """The critic's value of the action taken on each frame of a flat batch, ``[N]``."""
+
+    @abstractmethod
+    def action_gap(self, frames: TensorDictBase) -> torch.Tensor:
+        """``Q(s, a_machine) - Q(s, a_operator)`` per frame under the current critic.
+
+        Positive where the critic prefers the machine's action: how the protocol checks
+        that low-``b_m`` frames are frames where the machine's action is worse.
+        """
+
+    # -- the critic's warm-up --------------------------------------------------------------
+    def warm_up(self, frames: TensorDictBase, *, target: str, updates: int, batch_size: int, lr: float,
+                seed: int) -> float:
+        """Fits the critic alone on recorded transitions (the calibration runs), theta untouched.
+
+        The pretrained critic has never seen the task's target (the LunarLander machine is
+        pretrained on the centred pad); ``updates`` steps (Adam at ``lr``) on minibatches
+        of ``batch_size`` frames drawn (with a generator seeded by ``seed``) give it a start
+        before theta learns from it. ``target``:
+
+        - ``"td"``: Algorithm 1's TD loss;
+        - ``"return"``: ``Q(s, a_taken)`` regressed on the recorded discounted
+          return-to-go. A TD target carries an outcome back one step per update, so
+          after a short warm-up the critic still ranks actions mostly by their immediate
+          reward; the recorded return carries the landing or the crash to every frame at
+          once. ``frames`` must then be first episodes tagged with ``env_index`` /
+          ``frame_index`` (:func:`dcsc_torchrl.episodes.run_scenarios`).
+
+        Returns the last minibatch loss (``nan`` with no updates).
+        """
+        if target not in WARMUP_TARGETS:
+            raise ValueError(f"warm-up target must be one of {', '.join(WARMUP_TARGETS)}, got {target!r}")
+        frames = frames.reshape(-1)
+        returns = returns_to_go(frames, self.gamma) if target == "return" else None
+        generator = torch.Generator().manual_seed(seed)
+        optim = torch.optim.Adam(self.critic_optim.param_groups[0]["params"], lr=lr)
+        loss = torch.tensor(float("nan"))
+        for _ in range(updates):
+            index = torch.randint(frames.shape[0], (min(batch_size, frames.shape[0]),), generator=generator)
+            if returns is None:
+                loss = self.critic_loss(frames[index])
+            else:
+                loss = (self.taken_value(frames[index]) - returns[index]).pow(2).mean()
+            optim.zero_grad()
+            loss.backward()
+            optim.step()
+            self.targets.step()
+        return loss.item()
+
+    # -- Algorithm 1, once per collected batch ---------------------------------------------
+    def __call__(self, batch: TensorDictBase) -> None:
+        batch = batch.reshape(-1)
+        theta = self.policy["arbiter"].theta
+        for _ in range(self.updates_per_batch):
+            loss_critic = self.critic_loss(batch)
+            loss_theta = self.theta_loss(batch)
+            self.critic_optim.zero_grad()
+            self.theta_optim.zero_grad()
+            (loss_theta + loss_critic).backward()
+            grad = theta.grad.detach().clone()
+            self.critic_optim.step()
+            self.theta_optim.step()
+            self.targets.step()
+            self.history.append({
+                "update": len(self.history) + 1,
+                "theta": theta.detach().tolist(),
+                "theta_grad": grad.tolist(),
+                "loss_theta": loss_theta.item(),
+                "loss_critic": loss_critic.item(),
+            })
+
+
+class DiscreteOnlineLearner(OnlineLearner):
+    """Algorithm 1 on a discrete action: :class:`ThetaLoss` over ``Q(s, .)``."""
+
+    def _make_loss(self, policy: SharedPolicyModule, critic: torch.nn.Module) -> ThetaLoss:
+        return ThetaLoss(policy, TensorDictModule(critic, ["observation"], ["action_value"]), gamma=self.gamma)
+
+    @property
+    def critic_params(self) -> TensorDictBase:
+        return self.loss.qvalue_network_params
+
+    def critic_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        return self.loss.loss_qvalue(batch)[0]
+
+    def theta_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        return self.loss.loss_theta(batch)[0]
+
+    def taken_value(self, frames: TensorDictBase) -> torch.Tensor:
+        q = self.loss.action_values(frames, self.critic_params)
+        return (q * frames["action"].to(q.dtype)).sum(-1)
+
+    def action_gap(self, frames: TensorDictBase) -> torch.Tensor:
+        """As :meth:`OnlineLearner.action_gap`; the machine's action is its most likely key."""
+        frames = frames.reshape(-1)
+        with torch.no_grad():
+            q = self.critic(frames["observation"])
+            machine = q.gather(-1, frames["machine_probs"].argmax(-1, keepdim=True))
+            human = q.gather(-1, frames["human_action"].argmax(-1, keepdim=True))
+        return (machine - human).reshape(-1)
+
+
+class ContinuousOnlineLearner(OnlineLearner):
+    """Algorithm 1 on a continuous action: ``DDPGLoss`` with only theta trainable on the actor side."""
+
+    def _make_loss(self, policy: SharedPolicyModule, critic: torch.nn.Module) -> DDPGLoss:
+        loss = DDPGLoss(policy, ValueOperator(critic, in_keys=["observation", "action"]))
+        loss.make_value_estimator(ValueEstimators.TD0, gamma=self.gamma)
+        return loss
+
+    @property
+    def critic_params(self) -> TensorDictBase:
+        return self.loss.value_network_params
+
+    def critic_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        return self.loss.loss_value(batch)[0]
+
+    def theta_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        return self.loss.loss_actor(batch)[0]
+
+    def taken_value(self, frames: TensorDictBase) -> torch.Tensor:
+        with self.critic_params.to_module(self.loss.value_network):
+            return self.loss.value_network(frames.select("observation", "action").copy())["state_action_value"].reshape(-1)
+
+    def action_gap(self, frames: TensorDictBase) -> torch.Tensor:
+        frames = frames.reshape(-1)
+        with torch.no_grad():
+            obs = frames["observation"]
+            gap = self.critic(obs, frames["machine_action"]) - self.critic(obs, frames["human_action"].float())
+        return gap.reshape(-1)
+
+
+def make_online_learner(policy: SharedPolicyModule, critic: torch.nn.Module, **settings: Any) -> OnlineLearner:
+    """Algorithm 1's learner for ``policy``'s action kind; ``settings`` are :class:`OnlineLearner`'s keywords."""
+    learner = DiscreteOnlineLearner if policy.discrete else ContinuousOnlineLearner
+    return learner(policy, critic, **settings)
+
+
+def returns_to_go(frames: TensorDictBase, gamma: float) -> torch.Tensor:
+    """``G_t = sum_k gamma^k r_{t+k}`` to the end of each env's recorded episode, per frame ``[N]``.
+
+    ``frames`` is :attr:`dcsc_torchrl.episodes.EpisodeBatch.frames`: each env's first
+    episode, frames tagged with ``env_index`` and ``frame_index``.
+    """
+    reward = frames["next", "reward"].reshape(-1).double()
+    env, step = frames["env_index"].reshape(-1), frames["frame_index"].reshape(-1)
+    out = torch.zeros_like(reward)
+    for e in env.unique().tolist():
+        rows = (env == e).nonzero().reshape(-1)
+        rows = rows[step[rows].argsort()]
+        acc = 0.0
+        for row in reversed(rows.tolist()):
+            acc = reward[row].item() + gamma * acc
+            out[row] = acc
+    return out.to(torch.get_default_dtype())

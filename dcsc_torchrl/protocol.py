@@ -1,0 +1,356 @@
+"""The paper's protocol for one experiment cell: calibrate, collaborate, validate.
+
+A *cell* is (task, operator, pretrained machine). Within it every method of
+:data:`~dcsc_torchrl.methods.METHODS` is the same pipeline — the task's batched env, the
+operator and its confidence as transforms, :class:`SharedPolicyModule` — with its own
+arbiter. :func:`run_cell` takes any operator with the :class:`HumanOperator` interface
+and the scenario seeds of each phase (:class:`Scenarios`) as arguments; the settings are
+plain dataclasses, one per config group of the recipe (``MachineSettings(**cfg.machine)``),
+so this module never reads a config file.
+
+Each env of a batch is one scenario and plays exactly one recorded episode (its first);
+envs that finish early keep running (their frames still feed DC-SC's online updates)
+until every scenario of the batch is done. docs/architecture.md gives the reasons.
+"""
+
+from __future__ import annotations
+
+import copy
+import zlib
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import TransformedEnv
+
+from dcsc_torchrl.arbiters import Arbiter, FrozenConfidenceArbiter
+from dcsc_torchrl.confidence import machine_confidence
+from dcsc_torchrl.episodes import EpisodeBatch, run_scenarios
+from dcsc_torchrl.machine import calibrated_uncertainty_scale
+from dcsc_torchrl.methods import METHOD_NAMES, METHODS, build_policy, learned_method, make_arbiter
+from dcsc_torchrl.online import OnlineLearner, make_online_learner
+from dcsc_torchrl.policy import SharedPolicyModule
+from dcsc_torchrl.tasks import Task
+from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperator, HumanOperatorTransform
+
+
+@dataclass(frozen=True)
+class MachineSettings:
+    """The MC-dropout machine (Eqs. 10-13): :class:`MCDropoutPolicy`'s keywords."""
+
+    num_samples: int
+    lam: float
+    delta2: float
+    tau_inv: float = 0.0
+
+
+@dataclass(frozen=True)
+class ArbiterSettings:
+    """The arbiters: each learned form's start (``paper: {theta_init}``, ``centred: {theta_init, gain}``),
+    the form the ablation freezes, HULA's threshold (``None``: calibrated) and the constant sweep."""
+
+    form: str
+    paper: Mapping[str, float]
+    centred: Mapping[str, float]
+    hula_threshold: float | None = None
+    constant_betas: Sequence[float] = (0.0, 0.5, 1.0)
+
+    def __post_init__(self) -> None:
+        learned_method(self.form)  # a ValueError naming the forms
+
+    def start(self, method: str) -> dict[str, float]:
+        """The ``make_arbiter`` keywords of a learned method's initial arbiter."""
+        form = dict(getattr(self, METHODS[method].form or "paper"))
+        return {"theta_init": form["theta_init"], "gain": form.get("gain", self.centred["gain"])}
+
+
+@dataclass(frozen=True)
+class WarmupSettings:
+    """The critic's warm-up on the calibration runs (:meth:`OnlineLearner.warm_up`)."""
+
+    updates: int
+    batch_size: int
+    lr: float
+    target: str = "return"
+
+
+@dataclass(frozen=True)
+class ProtocolSettings:
+    """What the protocol does in a cell besides the methods' own settings.
+
+    Args:
+        seed: the experiment's seed (every run's torch seed is hashed from it, :func:`run_seed`).
+        rollout_length: frames per env between two online updates (Algorithm 1).
+        group_size: validation scenarios per group (the paper's groups of 10).
+        max_steps: the episode limit, ``None`` for the task's own.
+        calibrate_machine: read the machine's uncertainty in the unit that gives the
+            median operator-alone frame ``b_m = 1/2`` (:func:`calibrated_uncertainty_scale`).
+    """
+
+    seed: int = 0
+    rollout_length: int = 5
+    group_size: int = 10
+    max_steps: int | None = None
+    calibrate_machine: bool = True
+
+
+@dataclass(frozen=True)
+class Scenarios:
+    """The scenario seeds of each phase of the protocol."""
+
+    operator_alone: Sequence[int]
+    machine_alone: Sequence[int]
+    collaboration: Sequence[int]
+    validation: Sequence[int]
+
+    @classmethod
+    def standard(cls, *, operator_runs: int = 20, machine_alone_runs: int = 20, collaboration_runs: int = 20,
+                 validation_scenarios: int = 50, first_validation_seed: int = 0) -> Scenarios:
+        """The experiments' seeds: validation ``first_validation_seed + 0..N-1`` (0..49), the
+        operator alone from 10,000 (the machine alone on the first of the same), collaboration
+        from 20,000: ranges that never meet."""
+        return cls(
+            operator_alone=range(10_000, 10_000 + operator_runs),
+            machine_alone=range(10_000, 10_000 + machine_alone_runs),
+            collaboration=range(20_000, 20_000 + collaboration_runs),
+            validation=range(first_validation_seed, first_validation_seed + validation_scenarios),
+        )
+
+
+def run_seed(seed: int, pretrain_seed: int, phase: str, method: str) -> int:
+    """The torch seed of one (phase, method) run of a cell: a stable hash of the names.
+
+    So a run's rows depend neither on which cells ran before nor on which other methods
+    run in the cell.
+    """
+    return zlib.crc32(f"{seed}/{pretrain_seed}/{phase}/{method}".encode())
+
+
+def operator_seed(seed: int, pretrain_seed: int, first_scenario: int) -> int:
+    """The operator's seed for a batch of scenarios starting at ``first_scenario``.
+
+    The same for every method of a cell: each method meets the same person on the same
+    scenario (the operator's streams are per env, see :class:`EnvStreams`). 7919 (a prime)
+    keeps the pretraining seeds' operator streams apart.
+    """
+    return seed + pretrain_seed * 7919 + first_scenario
+
+
+@dataclass
+class CellResult:
+    """One cell's output: episode rows (every phase), traces of scenario 0, theta's updates,
+    and the calibration (HULA's threshold, the uncertainty unit, what b_m says)."""
+
+    episodes: list[dict[str, Any]]
+    traces: list[dict[str, Any]]
+    theta: list[dict[str, Any]]
+    hula_threshold: float
+    calibration: dict[str, Any] = field(default_factory=dict)
+
+
+def confidence_signal(uncertainty_scale: float, frames: TensorDictBase, gap: torch.Tensor,
+                      lam: float, delta2: float) -> dict[str, float]:
+    """How b_m spreads on the calibration frames, and whether low b_m marks worse machine actions.
+
+    ``gap`` is :meth:`OnlineLearner.action_gap` on ``frames``: the critic's
+    ``Q(s, a_machine) - Q(s, a_operator)``. Returns the 10/50/90th percentiles of b_m,
+    the mean gap on the quarter of frames with the lowest and the highest b_m, and their
+    rank correlation (Spearman).
+    """
+    b_m = machine_confidence(frames["machine_uncertainty"].reshape(-1).double() / uncertainty_scale, lam, delta2)
+    low, high = torch.quantile(b_m, 0.25), torch.quantile(b_m, 0.75)
+    ranks = torch.stack([b_m.argsort().argsort(), gap.double().argsort().argsort()]).double()
+    spearman = torch.corrcoef(ranks)[0, 1].item() if len(b_m) > 1 else float("nan")
+    return {
+        "uncertainty_scale": uncertainty_scale,
+        **{f"b_m_p{q}": torch.quantile(b_m, q / 100).item() for q in (10, 50, 90)},
+        "gap_low_b_m": gap[b_m <= low].mean().item(),
+        "gap_high_b_m": gap[b_m >= high].mean().item(),
+        "spearman_b_m_gap": spearman,
+    }
+
+
+class _Cell:
+    """The state of one cell while it runs: what calibration found, and the runs' plumbing."""
+
+    def __init__(self, task: Task, operator: HumanOperator, machine_net: torch.nn.Module, *,
+                 base: dict[str, Any], pretrain_seed: int, human: Mapping[str, Any], machine: MachineSettings,
+                 arbiter: ArbiterSettings, online: Mapping[str, Any], protocol: ProtocolSettings,
+                 progress: Callable[[str], None] | None) -> None:
+        self.task, self.operator, self.machine_net = task, operator, machine_net
+        self.base, self.pretrain_seed = base, pretrain_seed
+        self.human, self.machine, self.arbiter, self.online, self.protocol = human, machine, arbiter, online, protocol
+        self.progress = progress
+        self.hula_threshold: float | None = arbiter.hula_threshold
+        self.uncertainty_scale = 1.0
+        spec_env = self.make_env([0], operator_seed=0)
+        self.action_spec = spec_env.full_action_spec["action"]
+        self.observation_size = spec_env.observation_spec["observation"].shape[-1]
+        spec_env.close()
+
+    def make_env(self, seeds: Sequence[int], operator_seed: int) -> TransformedEnv:
+        transforms = [HumanOperatorTransform(self.operator, seed=operator_seed), HumanConfidenceTransform(**self.human)]
+        return self.task.make_envs(list(seeds), self.protocol.max_steps, transforms)
+
+    def policy(self, method: str, arbiter: Arbiter | None = None, **kwargs: Any) -> SharedPolicyModule:
+        if arbiter is None:
+            start = self.arbiter.start(method) if METHODS[method].kind == "learned" else {}
+            arbiter = make_arbiter(method, self.task.action_dims, hula_threshold=self.hula_threshold,
+                                   **start, **kwargs)
+        return build_policy(self.machine_net, arbiter, self.action_spec, discrete=self.task.discrete,
+                            num_samples=self.machine.num_samples, lam=self.machine.lam, delta2=self.machine.delta2,
+                            tau_inv=self.machine.tau_inv, uncertainty_scale=self.uncertainty_scale,
+                            observation_size=self.observation_size)
+
+    def play(self, phase: str, method: str, seeds: Sequence[int], policy: SharedPolicyModule,
+             update: OnlineLearner | None = None, trace: bool = False) -> EpisodeBatch:
+        if self.progress is not None:
+            self.progress(f"{phase}: {method}")
+        seed = self.protocol.seed
+        torch.manual_seed(run_seed(seed, self.pretrain_seed, phase, method))
+        env = self.make_env(seeds, operator_seed=operator_seed(seed, self.pretrain_seed, seeds[0]))
+        result = run_scenarios(env, policy, self.task, rollout_length=self.protocol.rollout_length, update=update,
+                               trace=trace)
+        env.close()
+        return result
+
+    def rows(self, phase: str, method: str, seeds: Sequence[int], result: EpisodeBatch,
+             **extra: Any) -> list[dict[str, Any]]:
+        group = self.protocol.group_size
+        return [{**self.base, "method": method, "phase": phase,
+                 "group": index // group + 1 if phase == "validation" else 0,
+                 "seed": s, "path_length": float("nan"), **row, "hula_threshold": self.hula_threshold, **extra}
+                for index, (s, row) in enumerate(zip(seeds, result.rows, strict=True))]
+
+    def traced(self, phase: str, method: str, seeds: Sequence[int], result: EpisodeBatch) -> list[dict[str, Any]]:
+        return [{**self.base, "method": method, "phase": phase, "seed": seeds[0], **r} for r in result.trace]
+
+
+def run_cell(
+    task: Task,
+    operator: HumanOperator,
+    machine_net: torch.nn.Module,
+    critic_net: torch.nn.Module,
+    *,
+    operator_name: str,
+    pretrain_seed: int,
+    human: Mapping[str, Any],
+    machine: MachineSettings,
+    arbiter: ArbiterSettings,
+    online: Mapping[str, Any],
+    warmup: WarmupSettings,
+    protocol: ProtocolSettings | None = None,
+    scenarios: Scenarios | None = None,
+    methods: Sequence[str] = METHOD_NAMES,
+    trace: bool = False,
+    progress: Callable[[str], None] | None = None,
+) -> CellResult:
+    """The protocol for one (task, operator, pretrained machine): calibrate, collaborate, validate.
+
+    1. **calibrate** — the operator alone on ``scenarios.operator_alone``: HULA's
+       threshold (the 90th percentile of the machine's uncertainty seen, unless
+       ``arbiter.hula_threshold`` is set) and the unit of the machine's uncertainty
+       (:func:`calibrated_uncertainty_scale`, when ``protocol.calibrate_machine``); the
+       machine alone on ``scenarios.machine_alone`` (may be empty); the critic's warm-up
+       on both partners' transitions (``warmup``);
+    2. **collaborate** — each learned arbiter (``dcsc``, ``dcsc_centred``) on
+       ``scenarios.collaboration``, theta and its own copy of the critic learning online
+       (Algorithm 1);
+    3. **validate** — every method on ``scenarios.validation`` (groups of
+       ``protocol.group_size``); the learned arbiters keep learning online; ``constant``
+       runs once per beta of ``arbiter.constant_betas``; ``dcsc_frozen`` starts from the
+       ``arbiter.form`` arbiter's theta after collaboration, its confidences frozen at
+       their collaboration means.
+
+    Args:
+        task: the registered task (:data:`dcsc_torchrl.tasks.TASKS`).
+        operator: any :class:`HumanOperator`; its ``reset(seed)`` is called at the start of
+            every run, with a seed that is the same for every method of the cell.
+        machine_net, critic_net: the pretrained actor and critic (the critic is copied, not trained).
+        operator_name: the ``operator`` column of the rows.
+        pretrain_seed: the machine's pretraining seed (the ``pretrain_seed`` column; seeds the runs).
+        human: :class:`HumanConfidenceTransform`'s keywords (Eqs. 6-9).
+        machine, arbiter, warmup: the settings above.
+        protocol: the runs' settings (:class:`ProtocolSettings`'s defaults when ``None``).
+        online: :class:`OnlineLearner`'s keywords (Algorithm 1's step sizes, gamma, tau, ...).
+        scenarios: the seeds of each phase; :meth:`Scenarios.standard` when ``None``.
+        methods: the methods validated, names of :data:`METHODS`.
+        trace: record every frame of scenario 0 for each method validated.
+        progress: called with a short line as each run starts (``"validation: hula"``).
+
+    Every run seeds torch with :func:`run_seed`, so its rows do not depend on which
+    cells or methods ran before it.
+    """
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown method(s) {unknown}: expected names of {', '.join(METHOD_NAMES)}")
+    scenarios = Scenarios.standard() if scenarios is None else scenarios
+    protocol = ProtocolSettings() if protocol is None else protocol
+    base = {"task": task.name, "operator": operator_name, "pretrain_seed": pretrain_seed}
+    cell = _Cell(task, operator, machine_net, base=base, pretrain_seed=pretrain_seed, human=human, machine=machine,
+                 arbiter=arbiter, online=online, protocol=protocol, progress=progress)
+
+    # 1. calibrate: everything the other phases need is known before any row is written
+    alone = cell.play("operator_alone", "operator", scenarios.operator_alone, cell.policy("operator"))
+    if cell.hula_threshold is None:
+        cell.hula_threshold = float(torch.quantile(alone.uncertainty.double(), 0.9))
+    if protocol.calibrate_machine:
+        cell.uncertainty_scale = calibrated_uncertainty_scale(alone.uncertainty, machine.lam, machine.delta2)
+    episodes = cell.rows("operator_alone", "operator", scenarios.operator_alone, alone)
+    warm_frames = alone.frames
+    if len(scenarios.machine_alone):
+        machine_alone = cell.play("machine_alone", "machine", scenarios.machine_alone, cell.policy("machine"))
+        episodes += cell.rows("machine_alone", "machine", scenarios.machine_alone, machine_alone)
+        warm_frames = torch.cat([alone.frames, machine_alone.frames])
+    warm = make_online_learner(cell.policy("dcsc"), copy.deepcopy(critic_net), **{**online, "theta_lr": 0.0})
+    warm.warm_up(warm_frames, target=warmup.target, updates=warmup.updates, batch_size=warmup.batch_size,
+                 lr=warmup.lr, seed=run_seed(protocol.seed, pretrain_seed, "operator_alone", "critic"))
+    calibration = {**base, "hula_threshold": cell.hula_threshold,
+                   **confidence_signal(cell.uncertainty_scale, alone.frames, warm.action_gap(alone.frames),
+                                       machine.lam, machine.delta2)}
+
+    def learner_for(policy: SharedPolicyModule) -> OnlineLearner:
+        return make_online_learner(policy, copy.deepcopy(warm.critic), **online)
+
+    # 2. collaborate: each learned arbiter with its own theta and critic
+    frozen_source = learned_method(arbiter.form)
+    needed = {m for m in methods if METHODS[m].kind == "learned"} | ({frozen_source} if "dcsc_frozen" in methods
+                                                                      else set())
+    learners: dict[str, OnlineLearner] = {}
+    means: dict[str, tuple[float, float]] = {}
+    for method in sorted(needed, key=METHOD_NAMES.index):
+        learners[method] = learner_for(cell.policy(method))
+        result = cell.play("collaboration", method, scenarios.collaboration, learners[method].policy,
+                           update=learners[method])
+        episodes += cell.rows("collaboration", method, scenarios.collaboration, result)
+        means[method] = (result.frames["machine_confidence"].mean().item(),
+                         result.frames["human_confidence"].mean().item())
+    collaboration_updates = {method: len(learner.history) for method, learner in learners.items()}
+    if "dcsc_frozen" in methods:
+        frozen = FrozenConfidenceArbiter(copy.deepcopy(learners[frozen_source].policy["arbiter"]),
+                                         *means[frozen_source])
+        learners["dcsc_frozen"] = learner_for(cell.policy("dcsc_frozen", frozen))
+        learners["dcsc_frozen"].critic.load_state_dict(learners[frozen_source].critic.state_dict())
+
+    # 3. validate every method
+    traces: list[dict[str, Any]] = []
+    validation = scenarios.validation
+    for method in methods:
+        kind = METHODS[method].kind
+        if kind == "sweep":
+            for beta in arbiter.constant_betas:
+                result = cell.play("validation", f"constant/{beta}", validation,
+                                   cell.policy("constant", constant_beta=beta))
+                episodes += cell.rows("validation", "constant", validation, result, constant_beta=float(beta))
+            continue
+        learner = learners.get(method)
+        policy = cell.policy(method) if learner is None else learner.policy
+        result = cell.play("validation", method, validation, policy, update=learner, trace=trace)
+        episodes += cell.rows("validation", method, validation, result)
+        traces += cell.traced("validation", method, validation, result)
+    theta = [{**base, "method": method,
+              "phase": "collaboration" if h["update"] <= collaboration_updates.get(method, 0) else "validation", **h}
+             for method, learner in learners.items() for h in learner.history]
+    return CellResult(episodes, traces, theta, cell.hula_threshold, calibration)
