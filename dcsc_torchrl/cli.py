@@ -238,12 +238,6 @@ def _sweep(args: argparse.Namespace) -> Any:
 
 def _play(args: argparse.Namespace) -> None:
     checkpoint = args.checkpoint
-    if checkpoint is None and args.assist == "dcsc":
-        from dcsc_torchrl.checkpoint import checkpoint_path
-        from dcsc_torchrl.config import load_config
-
-        cfg = load_config(recipes_dir() / "shared_control_lunarlander.yaml")
-        checkpoint = checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])
     from dcsc_torchrl.config import UsageError
     from dcsc_torchrl.humans.play import main as play_main
 

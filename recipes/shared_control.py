@@ -92,18 +92,25 @@ def cell_settings(cfg: DictConfig) -> dict[str, Any]:
 def pretrained_machine(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -> tuple[torch.nn.Module, torch.nn.Module]:
     """The machine actor and critic of pretraining seed ``seed``; pretrained first when missing.
 
+    With ``pretrain.shipped`` the machine shipped with the package (seed 0) instead.
+
     A checkpoint short of its episodes (a pretraining that stopped halfway) is resumed to
     the end first.
     """
     import importlib
 
+    if cfg.pretrain.shipped:
+        from dcsc_torchrl.shipped import shipped_machine
+
+        return shipped_machine(task)
     path = checkpoint_path(cfg.pretrain.out_dir, seed)
     recipe = importlib.import_module(task.pretrain_recipe)
     if not path.exists():
         print(f"{task.name}: no checkpoint at {path}, pretraining seed {seed} first", file=sys.stderr, flush=True)
         recipe.train(load_config(recipe.CONFIG, [f"seed={seed}", f"logger.out_dir={path.parent}"], quick=quick))
     data = load_checkpoint(path, task=task.name)
-    if data["episodes"] < data["config"]["train"]["episodes"]:
+    budget = data["config"].get("train", {}).get("episodes")
+    if budget is not None and data.get("episodes", budget) < budget:  # a weights-only file has no budget
         print(f"{task.name}: {path} stopped at episode {data['episodes']}, resuming", file=sys.stderr, flush=True)
         recipe.train(load_config(recipe.CONFIG, [f"seed={seed}", f"logger.out_dir={path.parent}"], quick=quick),
                      resume=True)
@@ -307,10 +314,13 @@ def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False
     cfg = task_config(task, overrides, quick=quick)
     methods = tuple(check_names("method", methods or METHOD_NAMES, METHOD_NAMES))
     presets = check_names("operator preset", list(operators or cfg.operator.presets), list(PRESETS))
+    if cfg.pretrain.shipped and list(cfg.pretrain.seeds) != [0]:
+        raise ConfigError(f"pretrain.shipped=true: only pretraining seed 0 ships, but pretrain.seeds is "
+                          f"{list(cfg.pretrain.seeds)}: add pretrain.seeds=[0]")
     grid = make_grid(task.name, cfg, presets, list(cfg.pretrain.seeds))
     out = Path(out)
     for seed in dict.fromkeys(cell.pretrain_seed for cell in grid.cells if not cell.done(out)):
-        if checkpoint_path(cfg.pretrain.out_dir, seed).exists():  # a broken one is refused before any cell runs
+        if not cfg.pretrain.shipped and checkpoint_path(cfg.pretrain.out_dir, seed).exists():  # a broken one is refused before any cell runs
             load_checkpoint(checkpoint_path(cfg.pretrain.out_dir, seed), task=task.name)
     task_dir = out / task.name
     prepare_results(task_dir, run_record(grid, methods), fresh=fresh)

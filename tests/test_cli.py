@@ -188,11 +188,14 @@ def test_play_without_checkpoint_says_how_to_get_one(tmp_path, capsys):
     assert "dcsc pretrain lunarlander" in line and str(tmp_path / "missing.pt") in line
 
 
-def test_play_looks_where_run_looks(tmp_path, monkeypatch, capsys):
+def test_play_looks_where_run_looks_then_flies_the_shipped_machine(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("DISPLAY", raising=False)  # the machine is chosen before the window opens
     cfg = load_config(RECIPES / "shared_control_lunarlander.yaml")
-    assert main(["play", "lunarlander"]) == 2
-    assert str(checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])) in one_line_error(capsys)
+    main(["play", "lunarlander"])
+    err = capsys.readouterr().err
+    assert f"no checkpoint at {checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])}" in err
+    assert "shipped machine (lunarlander_seed0.pt)" in err
 
 
 # -- checkpoints ----------------------------------------------------------------------
@@ -388,15 +391,16 @@ def test_dcsc_pretrain_writes_where_dcsc_run_reads(quick, monkeypatch, capsys):
 
     class Recipe:
         @staticmethod
-        def main(argv):
-            seen["argv"] = argv
+        def train(cfg, *, resume):
+            seen["cfg"], seen["resume"] = cfg, resume
 
     monkeypatch.setattr(cli.importlib, "import_module", lambda name: Recipe)
     assert main(["pretrain", "uav", *(["--quick"] if quick else []), "seed=2"]) == 0
     run_cfg = load_config(RECIPES / "shared_control_uav.yaml", quick=quick)
     expected = checkpoint_path(run_cfg.pretrain.out_dir, 2)
-    argv = seen["argv"]
-    assert Path(argv[argv.index("--out") + 1]) == expected.parent and argv[-1] == "seed=2"
+    cfg = seen["cfg"]
+    assert Path(cfg.logger.out_dir) == expected.parent and cfg.seed == 2 and not seen["resume"]
+    assert cfg.train.episodes == (load_config(RECIPES / "pretrain_ddpg_uav.yaml", quick=quick).train.episodes)
     assert f"checkpoint in {expected}" in capsys.readouterr().err
 
 

@@ -104,7 +104,7 @@ def test_a_failing_cell_is_retried_then_reported_and_the_other_cells_kept(local_
     assert failed[["cell", "attempts"]].values.tolist() == [["nobody-seed0", 2]]  # ray.retries=1: tried twice
     assert "unknown operator preset 'nobody'" in failed["error"].iloc[0]
     traceback = (task_dir / "cells" / "nobody-seed0" / "error.txt").read_text()
-    assert "in make_operator" in traceback and "\x1b[" not in traceback
+    assert "from_preset" in traceback and "\x1b[" not in traceback
     summary = (task_dir / "summary.md").read_text()
     assert "## Failed cells" in summary and "nobody-seed0" in summary and "DC-SC" in summary
     episodes = pd.read_csv(task_dir / "episodes.csv")

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -86,6 +87,21 @@ def load_machine(path: Path) -> tuple[nn.Module, nn.Module]:
             "pass --checkpoint PATH, or fly alone with --assist none"
         )
     return machine_from_checkpoint(load_checkpoint(path, task=TASK.name), TASK)
+
+
+def assisting_machine(checkpoint: Path | None, cfg: DictConfig) -> tuple[nn.Module, nn.Module]:
+    """The machine of ``--assist dcsc``: ``checkpoint``; else the first pretraining seed's
+    checkpoint of the config; else, when that was never pretrained, the shipped machine."""
+    from dcsc_torchrl.checkpoint import checkpoint_path
+
+    default = checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])
+    if checkpoint is None and not default.exists():
+        from dcsc_torchrl.shipped import shipped_machine, shipped_path
+
+        print(f"no checkpoint at {default}: flying with the shipped machine ({shipped_path(TASK).name})",
+              file=sys.stderr)
+        return shipped_machine(TASK)
+    return load_machine(checkpoint or default)
 
 
 def make_play_env(
@@ -273,13 +289,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of ``dcsc play`` (``argv`` = ``["lunarlander", *options]``)."""
     args = build_parser().parse_args(argv)
     cfg = play_config()
-    if args.checkpoint is None:
-        from dcsc_torchrl.checkpoint import checkpoint_path
-
-        args.checkpoint = checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])
     confidence = HumanConfidenceTransform(**cfg.human)
     try:
-        networks = load_machine(args.checkpoint) if args.assist == "dcsc" else None
+        networks = assisting_machine(args.checkpoint, cfg) if args.assist == "dcsc" else None
         render_env = gym.make(LUNAR_ID, render_mode="rgb_array")
         pilot = KeyboardPilot(frame_source=render_env.render, t_d=confidence.t_d)
     except (FileNotFoundError, NoDisplayError) as error:

@@ -1,0 +1,100 @@
+"""The machines that ship with the package: the paper's setting, pretraining seed 0, weights only.
+
+``dcsc_torchrl/pretrained/<task>_seed0.pt`` holds the actor and critic state dicts of
+``dcsc pretrain <task> seed=0`` (the recipe's defaults: 500 episodes), the network config
+they were built with, the greedy return of one recorded episode and the command that
+produced them (also in ``pretrained/README.md``). They load into the recipe's own
+networks (:attr:`Task.make_networks`), so ``dcsc run <task> pretrain.shipped=true``,
+``dcsc play --assist dcsc`` and a first try work without pretraining; ``make reproduce``
+still pretrains from scratch.
+
+    python -m dcsc_torchrl.shipped TASK CHECKPOINT    # re-export a pretraining checkpoint
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from dcsc_torchrl.checkpoint import load_checkpoint, save_checkpoint
+from dcsc_torchrl.networks import machine_from_checkpoint
+from dcsc_torchrl.tasks import TASK_NAMES, Task, get_task
+
+SHIPPED_DIR = Path(__file__).parent / "pretrained"
+SHIPPED_SEED = 0
+GREEDY_SEED = 12_345
+"""The seed of the recorded greedy episode (standard pad / UAV scenario), apart from every protocol range."""
+
+
+def shipped_path(task: Task) -> Path:
+    """Where ``task``'s shipped machine lies."""
+    return SHIPPED_DIR / f"{task.name}_seed{SHIPPED_SEED}.pt"
+
+
+def greedy_return(task: Task, actor: torch.nn.Module) -> float:
+    """The return of one greedy, dropout-free episode of the machine alone on :data:`GREEDY_SEED`.
+
+    LunarLander flies the standard pad (what the machine is pretrained on); the UAV flies
+    scenario :data:`GREEDY_SEED`.
+    """
+    from tensordict.nn import TensorDictModule
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    env = task.make_pretraining_envs(1) if task.discrete else task.make_envs([GREEDY_SEED], None, [])
+    env.set_seed(GREEDY_SEED)
+    out_key = "logits" if task.discrete else "action"
+    policy = TensorDictModule(actor.eval(), ["observation"], [out_key])
+    if task.discrete:
+        from torchrl.modules import OneHotCategorical, ProbabilisticActor
+
+        policy = ProbabilisticActor(policy, ["logits"], spec=env.full_action_spec["action"],
+                                    distribution_class=OneHotCategorical)
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        rollout = env.rollout(task.max_steps, policy)
+    env.close()
+    return float(rollout["next", "reward"].sum())
+
+
+def export_machine(task: Task, checkpoint: str | Path, out: str | Path | None = None) -> Path:
+    """Writes the actor and critic of a pretraining ``checkpoint`` as ``task``'s shipped machine."""
+    data = load_checkpoint(checkpoint, task=task.name)
+    actor, _ = machine_from_checkpoint(data, task)
+    names = task.checkpoint_modules
+    payload: dict[str, Any] = {
+        "state": {name: data["state"][name] for name in names},
+        "config": {"network": data["config"]["network"], "seed": data["config"]["seed"]},
+        "episodes": data["episodes"],
+        "frames": data["frames"],
+        "greedy_return": greedy_return(task, actor),
+        "command": f"dcsc pretrain {task.name} seed={data['config']['seed']}",
+    }
+    return save_checkpoint(out or shipped_path(task), task=task.name, payload=payload)
+
+
+def load_shipped(task: Task) -> dict[str, Any]:
+    """The shipped file of ``task``, as :func:`load_checkpoint` reads it."""
+    return load_checkpoint(shipped_path(task), task=task.name)
+
+
+def shipped_machine(task: Task) -> tuple[torch.nn.Module, torch.nn.Module]:
+    """``task``'s shipped actor and critic, in the recipe's networks, in eval mode."""
+    return machine_from_checkpoint(load_shipped(task), task)
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    parser = argparse.ArgumentParser(prog="python -m dcsc_torchrl.shipped", description=__doc__.split("\n\n")[0])
+    parser.add_argument("task", choices=TASK_NAMES)
+    parser.add_argument("checkpoint", type=Path, help="a pretraining checkpoint (checkpoint.pt)")
+    args = parser.parse_args(argv)
+    path = export_machine(get_task(args.task), args.checkpoint)
+    print(f"shipped machine in {path}", file=sys.stderr)
+    return path
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,63 @@
+"""The machines shipped with the package: weights only, the recipe's shapes, their recorded greedy return."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dcsc_torchrl.cli import main
+from dcsc_torchrl.config import load_config
+from dcsc_torchrl.shipped import greedy_return, load_shipped, shipped_machine, shipped_path
+from dcsc_torchrl.tasks import TASKS, get_task
+from recipes.shared_control import RECIPES
+
+
+def recipe_config(task_name: str, overrides: list[str] = ()):
+    module = get_task(task_name).pretrain_recipe.rsplit(".", 1)[1]
+    return load_config(RECIPES / f"{module}.yaml", list(overrides))
+
+
+@pytest.mark.parametrize("name", list(TASKS))
+def test_shipped_weights_are_small_weights_only_files_of_the_paper_setting(name):
+    task = get_task(name)
+    path = shipped_path(task)
+    assert path.stat().st_size < 2_000_000
+    data = load_shipped(task)
+    assert set(data["state"]) == set(task.checkpoint_modules)  # no optimiser, no replay buffer
+    cfg = recipe_config(name)
+    assert data["config"]["network"] == dict(cfg.network) and data["config"]["seed"] == 0
+    assert data["episodes"] >= cfg.train.episodes and data["command"] == f"dcsc pretrain {name} seed=0"
+    assert (path.parent / "README.md").read_text().count(data["command"]) == 1
+
+
+@pytest.mark.parametrize("name", list(TASKS))
+def test_shipped_weights_load_into_the_recipe_networks_and_give_their_recorded_return(name):
+    task = get_task(name)
+    actor, critic = shipped_machine(task)
+    fresh_actor, fresh_critic = task.make_networks(recipe_config(name).network)
+    for loaded, fresh in ((actor, fresh_actor), (critic, fresh_critic)):
+        assert {k: v.shape for k, v in loaded.state_dict().items()} == {
+            k: v.shape for k, v in fresh.state_dict().items()}
+    assert not actor.training and not critic.training
+    assert greedy_return(task, actor) == pytest.approx(load_shipped(task)["greedy_return"], abs=1e-3)
+
+
+def test_run_with_the_shipped_machine_needs_seed_0_only(capsys):
+    assert main(["run", "lunarlander", "--quick", "pretrain.shipped=true", "pretrain.seeds=[0,1]"]) == 2
+    err = capsys.readouterr().err
+    assert "only pretraining seed 0 ships" in err and "pretrain.seeds=[0]" in err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(TASKS))
+def test_the_recorded_command_rederives_the_shipped_weights(name, tmp_path):
+    import importlib
+
+    task = get_task(name)
+    recipe = importlib.import_module(task.pretrain_recipe)
+    recipe.train(recipe_config(name, ["seed=0", f"logger.out_dir={tmp_path}"]))
+    shipped = load_shipped(task)["state"]
+    retrained = torch.load(tmp_path / "checkpoint.pt", weights_only=True)["state"]
+    for module in task.checkpoint_modules:
+        for key, value in shipped[module].items():
+            torch.testing.assert_close(retrained[module][key], value, rtol=0, atol=0, msg=f"{module}.{key}")
