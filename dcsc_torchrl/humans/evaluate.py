@@ -7,6 +7,8 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
 from torchrl.envs import EnvBase
 
+from dcsc_torchrl.episodes import in_first_episode
+
 __all__ = ["operator_only_episodes", "operator_only_policy"]
 
 
@@ -47,30 +49,14 @@ def operator_only_episodes(
         sum) and ``steps`` (its length).
     """
     policy = operator_only_policy() if policy is None else policy
-    n_envs = env.batch_size.numel()
-    finished = torch.zeros(n_envs, dtype=torch.bool)
-    result = {
-        "success": torch.zeros(n_envs, dtype=torch.bool),
-        "return": torch.zeros(n_envs),
-        "steps": torch.zeros(n_envs, dtype=torch.int64),
+    rollout = env.rollout(max_steps, policy, break_when_any_done=False, break_when_all_done=True)
+    nxt = rollout.get("next")
+    done = nxt.get("done").reshape(*rollout.batch_size).cpu()
+    done[:, -1] = True  # an episode still running after max_steps ends there, unsuccessful
+    end = (done & in_first_episode(done)).int().argmax(-1)
+    last = nxt[torch.arange(done.shape[0]), end]
+    return {
+        "success": last.get("success").reshape(-1).cpu() & last.get("done").reshape(-1).cpu(),
+        "return": last.get("episode_reward").reshape(-1).cpu(),
+        "steps": last.get("step_count").reshape(-1).cpu(),
     }
-    td = env.reset()
-    for _ in range(max_steps):
-        td, next_root = env.step_and_maybe_reset(policy(td))
-        step = td.get("next")
-        running = ~finished
-        done = step.get("done").reshape(n_envs).cpu() | (
-            step.get("step_count").reshape(n_envs).cpu() >= max_steps
-        )
-        values = {
-            "success": step.get("success").reshape(n_envs).cpu() & done,
-            "return": step.get("episode_reward").reshape(n_envs).cpu(),
-            "steps": step.get("step_count").reshape(n_envs).cpu(),
-        }
-        for key, value in values.items():
-            result[key] = torch.where(running, value, result[key])
-        finished |= done
-        if finished.all():
-            break
-        td = next_root
-    return result
