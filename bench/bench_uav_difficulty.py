@@ -23,7 +23,7 @@ import torch
 
 from dcsc_torchrl.batched_envs import make_uav_env
 from dcsc_torchrl.humans import SimulatedOperator
-from dcsc_torchrl.humans.evaluate import operator_only_policy
+from dcsc_torchrl.humans.operator_alone import operator_only_policy
 from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.transforms import HumanOperatorTransform
 from envs.uav import BEST_CONSTANT_ACTION, HORIZON, constant_action_outcomes

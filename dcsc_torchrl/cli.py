@@ -4,7 +4,7 @@
     dcsc run {lunarlander,uav} [--quick] [--out DIR] [--methods M ...] [--operators P ...] [--fresh] [key=value ...]
     dcsc sweep [--quick] [--out DIR] [--address ADDR] [--fresh] [key=value ...]
     dcsc reproduce [--quick] [--out DIR] [--fresh] [key=value ...]
-    dcsc evaluate [--out DIR]
+    dcsc report [--out DIR]
     dcsc play lunarlander [--assist {dcsc,none}] [--checkpoint PATH] [--episodes N] [--seed S]
 
 Every parser of the project is built here (the recipes parse their command lines with
@@ -151,8 +151,8 @@ def add_reproduce_options(parser: argparse.ArgumentParser) -> argparse.ArgumentP
     return parser
 
 
-def add_evaluate_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """The options of ``dcsc evaluate``."""
+def add_report_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``dcsc report``."""
     parser.add_argument("--out", type=Path, default=Path("results"),
                         help="results root holding <task>/episodes.csv (default results/)")
     return parser
@@ -206,10 +206,10 @@ def _run(args: argparse.Namespace) -> Path:
     return run(args)
 
 
-def _evaluate(args: argparse.Namespace) -> Path:
-    from recipes.reproduce import evaluate
+def _report(args: argparse.Namespace) -> Path:
+    from recipes.reproduce import report
 
-    path = evaluate(args.out)
+    path = report(args.out)
     _say(f"results in {path.parent}")
     return path
 
@@ -256,7 +256,7 @@ COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], Any], Callabl
     "run": ("the shared-control protocol of one task, every cell, resumable", add_run_options, _run),
     "sweep": ("the protocol's grid of cells as Ray tasks, here or on a cluster", add_sweep_options, _sweep),
     "reproduce": ("pretrain, run both experiments, write the report", add_reproduce_options, _reproduce),
-    "evaluate": ("redraw summaries and figures from <results>/<task>/*.csv", add_evaluate_options, _evaluate),
+    "report": ("redraw summaries and figures from <results>/<task>/*.csv", add_report_options, _report),
     "play": ("fly TargetLunarLander yourself, alone or with DC-SC", add_play_options, _play),
 }
 

@@ -152,7 +152,7 @@ def first_episodes(rollout: TensorDictBase, extra_keys: Sequence[str] = ()) -> l
     return rows
 
 
-def evaluate(
+def greedy_episodes(
     env: EnvBase, policy: TensorDictModuleBase, max_steps: int, extra_keys: Sequence[str] = ()
 ) -> list[dict[str, Any]]:
     """One greedy episode per env: eval mode (no dropout), deterministic actions.

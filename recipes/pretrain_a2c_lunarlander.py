@@ -36,7 +36,7 @@ from dcsc_torchrl.losses import QCriticLoss
 from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic
 from dcsc_torchrl.training import (
     TrainingRun,
-    evaluate,
+    greedy_episodes,
     make_collector,
     parse_recipe_args,
     recipe_config,
@@ -134,7 +134,7 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
         """``episodes`` greedy machine-only episodes (one per env), seeded."""
         env = make_lunar_env(episodes, random_pad=random_pad)
         env.set_seed(seed)
-        rows = evaluate(env, actor, 1000, ["success", "crashed", "landed_outside"])
+        rows = greedy_episodes(env, actor, 1000, ["success", "crashed", "landed_outside"])
         env.close()
         return rows
 

@@ -32,7 +32,7 @@ from dcsc_torchrl.config import to_plain
 from dcsc_torchrl.networks import uav_actor, uav_critic
 from dcsc_torchrl.training import (
     TrainingRun,
-    evaluate,
+    greedy_episodes,
     make_collector,
     parse_recipe_args,
     recipe_config,
@@ -122,7 +122,7 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
 
     # --- machine-only evaluation on the validation scenarios ----------------------------
     env = make_uav_env(cfg.eval.scenarios, scenario_seeds=list(range(cfg.eval.scenarios)), device=device)
-    rows = evaluate(env, actor, 501, list(UAV_INFO_KEYS))
+    rows = greedy_episodes(env, actor, 501, list(UAV_INFO_KEYS))
     pd.DataFrame(rows).rename(columns={"env": "scenario"}).to_csv(run.out_dir / "eval.csv", index=False)
     return curve
 

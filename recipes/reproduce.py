@@ -29,7 +29,7 @@ def _traced_cell(task_dir: Path) -> tuple[str, int]:
     return str(trace["operator"].iloc[0]), int(trace["pretrain_seed"].iloc[0])
 
 
-def evaluate(results: Path, wall_seconds: float | None = None) -> Path:
+def report(results: Path, wall_seconds: float | None = None) -> Path:
     """Redraws every task's summary and figures from its CSVs, and the joint ``summary.md``."""
     parts = ["# DC-SC reproduction: results\n"]
     if wall_seconds is not None:
@@ -59,7 +59,7 @@ def reproduce(results: Path | None = None, *, quick: bool = False, overrides: Se
     start = time.perf_counter()
     for task in TASK_NAMES:
         run_task(task, out=results, quick=quick, overrides=overrides, fresh=fresh)
-    return evaluate(results, time.perf_counter() - start)
+    return report(results, time.perf_counter() - start)
 
 
 def main(argv: Sequence[str] | None = None) -> Path:

@@ -91,7 +91,7 @@ def full_run(machine_dir, tmp_path_factory) -> Path:
         (["run", "--help"], "a missing one is pretrained first"),
         (["sweep", "--help"], "usage: dcsc sweep"),
         (["reproduce", "--help"], "--quick"),
-        (["evaluate", "--help"], "usage: dcsc evaluate"),
+        (["report", "--help"], "usage: dcsc report"),
     ],
 )
 def test_every_subcommand_has_its_own_help(argv, expected, capsys):
@@ -158,7 +158,7 @@ def test_run_help_names_every_method_it_accepts(capsys):
         (["run", "lunarlander", "--methods", "nothing"], ["unknown method 'nothing'"]),
         (["sweep", "lunarlander.protocol.group_size=0"], ["protocol.group_size", ">= 1"]),
         (["sweep", "ray.workerz=2"], ["unknown key ray.workerz", "did you mean ray.workers?"]),
-        (["evaluate", "a.b=1"], ["takes no key=value overrides"]),
+        (["report", "a.b=1"], ["takes no key=value overrides"]),
     ],
 )
 def test_a_bad_input_is_one_line_naming_it_and_exit_2(argv, needles, capsys, tmp_path, monkeypatch):
@@ -415,7 +415,7 @@ def test_debug_shows_the_real_exception_and_a_bug_is_one_line_exit_1(monkeypatch
     def bug(args):
         raise RuntimeError("something broke\nover two lines")
 
-    monkeypatch.setitem(cli.COMMANDS, "evaluate", (*cli.COMMANDS["evaluate"][:2], bug))
-    assert main(["evaluate"]) == 1
+    monkeypatch.setitem(cli.COMMANDS, "report", (*cli.COMMANDS["report"][:2], bug))
+    assert main(["report"]) == 1
     assert one_line_error(capsys) == ("dcsc: error: RuntimeError: something broke over two lines "
                                       "(run with --debug for the traceback)")

@@ -40,8 +40,8 @@ from torchrl.envs.utils import step_mdp
 
 from dcsc_torchrl.batched_envs import LUNAR_ID, LUNAR_INFO_KEYS
 from dcsc_torchrl.checkpoint import load_checkpoint
-from dcsc_torchrl.humans.evaluate import operator_only_policy
 from dcsc_torchrl.humans.keyboard import KeyboardPilot, NoDisplayError
+from dcsc_torchrl.humans.operator_alone import operator_only_policy
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.runlog import RunLog
 from dcsc_torchrl.tasks import get_task
