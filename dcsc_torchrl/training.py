@@ -170,8 +170,9 @@ def greedy_episodes(
     return first_episodes(rollout, extra_keys)
 
 
-RESUMABLE_CHANGES = ("logger.out_dir", "threads", "train.episodes", "train.stop_success", "train.stop_eval_episodes")
-"""Config keys a resumed run may change: where it writes, its threads, its budget."""
+RESUMABLE_CHANGES = ("logger.out_dir", "threads", "train.episodes", "train.stop_success", "train.stop_eval_episodes",
+                     "train.keep_best")
+"""Config keys a resumed run may change: where it writes, its threads, its budget (and what it keeps)."""
 
 
 class TrainingRun:
@@ -218,6 +219,7 @@ class TrainingRun:
         self.stateful = dict(stateful)
         self.log = RunLog(self.out_dir / "train.csv", columns)
         self.checkpoint_path = self.out_dir / "checkpoint.pt"
+        self.best_path = self.out_dir / "best.pt"
         self.episodes = 0
         self.frames = 0
         self.segment = 0
@@ -227,7 +229,8 @@ class TrainingRun:
     def start(self, *, resume: bool) -> None:
         """Starts fresh (removing an old log) or resumes from the last checkpoint.
 
-        The temporary files of a checkpoint write that was killed are removed first.
+        The temporary files of a checkpoint write that was killed are removed first; a
+        fresh start also removes an old ``best.pt`` (:meth:`keep_best`).
 
         Raises:
             ConfigError: resuming a checkpoint written with another config (the keys
@@ -245,8 +248,10 @@ class TrainingRun:
                     f"({'; '.join(changed)}); resume with the same settings, or start over without --resume"
                 )
             self._restore(data)
+            self.log.truncate("episode", self.episodes)
         else:
             self.log.path.unlink(missing_ok=True)
+            self.best_path.unlink(missing_ok=True)
         self._progress = Progress(self.total_episodes, f"{self.task} episodes", "ep", initial=self.episodes)
 
     def _restore(self, data: dict[str, Any]) -> None:
@@ -261,7 +266,6 @@ class TrainingRun:
                 obj.load_state_dict(data["state"][name])
         self.episodes, self.frames, self.segment = data["episodes"], data["frames"], data["segment"]
         set_rng_state(data["rng"])
-        self.log.truncate("episode", self.episodes)
 
     # -- the loop -------------------------------------------------------------------
     @property
@@ -303,9 +307,10 @@ class TrainingRun:
         Args:
             segment_collector: the collector of a segment, from its env seed.
             update: one algorithm step on a batch; returns the loss metrics to log.
-            stop: optional early stop, asked after each segment with the number of
-                segments done (e.g. "does the greedy machine land often enough?");
-                ``True`` ends training before the episode budget is spent.
+            stop: optional check, asked after each segment (the last one included) with
+                the number of segments done, once its checkpoint is written (e.g. "does
+                the greedy machine land often enough?"); ``True`` ends training before
+                the episode budget is spent.
         """
         threads = torch.get_num_threads()
         while not self.done:
@@ -317,13 +322,30 @@ class TrainingRun:
             collector.shutdown()
             torch.set_num_threads(threads)  # a multi-process collector's shutdown changes it
             self.end_segment()
-            if stop is not None and not self.done and stop(self.segment):
+            if stop is not None and stop(self.segment):
                 break
 
     def end_segment(self) -> None:
         """Closes the segment with an atomic checkpoint."""
         self.segment += 1
         self.save()
+
+    def keep_best(self) -> None:
+        """Copies the checkpoint just written to ``best.pt`` (atomically), for :meth:`restore_best`.
+
+        The caller decides what is best: e.g. a ``stop`` check of :meth:`train` calls this
+        when the checkpointed machine beats every earlier check.
+        """
+        save_checkpoint(self.best_path, task=self.task, payload=load_checkpoint(self.checkpoint_path, task=self.task))
+
+    def restore_best(self) -> None:
+        """Makes ``best.pt`` the run's result: written over ``checkpoint.pt`` and loaded into the
+        stateful objects and counters (``train.csv`` keeps every episode trained), so what is
+        evaluated next is the kept machine, and ``--resume`` trains on from it.
+        """
+        data = load_checkpoint(self.best_path, task=self.task)
+        save_checkpoint(self.checkpoint_path, task=self.task, payload=data)
+        self._restore(data)
 
     def save(self) -> None:
         state = {

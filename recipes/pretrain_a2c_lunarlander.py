@@ -6,13 +6,15 @@ standard values, not the pad. Beside it a Q critic learns Q(s, a) from a replay 
 by the TD loss of Algorithm 1 — DC-SC's theta update needs Q; it reads all 9 values, the
 pad included. Training stops after ``train.episodes`` episodes (or, with
 ``train.stop_success``, once the greedy machine lands that often); every ``train.checkpoint_every`` episodes an atomic
-checkpoint is written, and ``--resume`` continues from the last one.
+checkpoint is written, and ``--resume`` continues from the last one. With ``train.keep_best``
+the run's result is the checkpoint of its best landing check (``best.pt``), not its last.
 
     python recipes/pretrain_a2c_lunarlander.py [--quick] [--resume] [--out DIR] [key=value ...]
 
 Outputs in ``logger.out_dir``: ``train.csv`` (one row per episode), ``checkpoint.pt``,
 ``learning_curve.png``, ``eval.csv`` (machine-only greedy episodes, standard and moved pad)
-and, with ``train.stop_success > 0``, ``stop_checks.csv`` (the landing check after each segment).
+and, with ``train.stop_success > 0`` or ``train.keep_best``, ``stop_checks.csv`` (the landing
+check after each segment) and, with ``train.keep_best``, ``best.pt``.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from torchrl.modules import OneHotCategorical, ProbabilisticActor, ValueOperator
 from torchrl.objectives import A2CLoss, SoftUpdate, ValueEstimators
 
 from dcsc_torchrl.batched_envs import make_lunar_env
-from dcsc_torchrl.config import to_plain
+from dcsc_torchrl.config import ConfigError, to_plain
 from dcsc_torchrl.losses import QCriticLoss
 from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic
 from dcsc_torchrl.training import (
@@ -45,6 +47,7 @@ from dcsc_torchrl.training import (
 CONFIG = Path(__file__).with_suffix(".yaml")
 COLUMNS = ["episode", "frames", "return", "steps", "success",
            "loss_objective", "loss_critic", "loss_entropy", "loss_qvalue"]
+LR_SCHEDULES = ("constant", "linear")  # optim.lr_schedule: Table A1's constant lr, or linear to 0 over the budget
 
 
 def make_a2c(cfg: DictConfig, actor_net: torch.nn.Module, value_net: torch.nn.Module,
@@ -96,6 +99,8 @@ def a2c_step(cfg: DictConfig, loss: A2CLoss, optim: torch.optim.Optimizer, batch
 def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     """Pretrains the machine of ``cfg`` into ``cfg.logger.out_dir`` (from its last checkpoint with
     ``resume``); returns the learning curve's PNG."""
+    if cfg.optim.lr_schedule not in LR_SCHEDULES:
+        raise ConfigError(f"optim.lr_schedule: expected one of {', '.join(LR_SCHEDULES)}, got {cfg.optim.lr_schedule!r}")
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
 
@@ -113,6 +118,9 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.qcritic.buffer_size), batch_size=cfg.qcritic.batch_size)
 
     def update(batch) -> dict[str, float]:
+        if cfg.optim.lr_schedule == "linear":  # to 0 over the episode budget (resumes from run.episodes)
+            for group in optim.param_groups:
+                group["lr"] = cfg.optim.lr * (1.0 - run.episodes / run.total_episodes)
         buffer.extend(batch.reshape(-1).select("observation", "action", "next").clone())  # env-scale rewards
         metrics = a2c_step(cfg, a2c_loss, optim, batch)
         for _ in range(cfg.qcritic.updates_per_batch):  # >= 1 (dcsc_torchrl.config.LIMITS)
@@ -142,12 +150,15 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
 
     def landed_enough(segment: int) -> bool:
         """``train.stop_success``: the greedy machine's success on the standard pad, checked
-        after each segment on ``train.stop_eval_episodes`` episodes (seeds apart from eval's)."""
+        after each segment on ``train.stop_eval_episodes`` episodes (seeds apart from eval's).
+        With ``train.keep_best`` a check above every earlier one keeps its checkpoint."""
         rows = greedy(cfg.train.stop_eval_episodes, False, cfg.seed + 20_000 + segment)
         success = sum(row["success"] for row in rows) / len(rows)
+        if cfg.train.keep_best and (not stop_log.exists() or success > pd.read_csv(stop_log)["success"].max()):
+            run.keep_best()
         pd.DataFrame([{"episode": run.episodes, "frames": run.frames, "success": success}]).to_csv(
             stop_log, mode="a", header=not stop_log.exists(), index=False)
-        return success >= cfg.train.stop_success
+        return cfg.train.stop_success > 0 and success >= cfg.train.stop_success
 
     run.start(resume=resume)
     if not resume:
@@ -158,8 +169,10 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
                                     actor, workers=cfg.collector.workers, seed=seed,
                                     frames_per_batch=frames_per_batch),
         update,
-        stop=landed_enough if cfg.train.stop_success > 0 else None,
+        stop=landed_enough if cfg.train.stop_success > 0 or cfg.train.keep_best else None,
     )
+    if cfg.train.keep_best:  # the result (checkpoint.pt, eval.csv) is the best check's machine
+        run.restore_best()
     curve = run.finish("A2C on TargetLunarLander (pad at the centre)")
 
     # --- machine-only evaluation: the standard pad and the moved pad (0 episodes: skip) --

@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from dcsc_torchrl.checkpoint import load_checkpoint, save_checkpoint
+from dcsc_torchrl.config import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = {
@@ -160,5 +161,47 @@ def test_the_landing_check_runs_after_each_segment_but_the_last(tmp_path):
     run_recipe("lunarlander", tmp_path, "train.stop_success=0.5", "train.stop_eval_episodes=2")
     checks = pd.read_csv(tmp_path / "stop_checks.csv")
     log = pd.read_csv(tmp_path / "train.csv")
-    assert len(log) == 6 and checks["episode"].tolist() == [3]
+    assert len(log) == 6 and checks["episode"].tolist() == [3, 6]
     assert checks["success"].between(0, 1).all()
+
+
+def test_the_linear_learning_rate_falls_to_zero_over_the_episode_budget(tmp_path):
+    run_recipe("lunarlander", tmp_path, "optim.lr_schedule=linear")
+    log = pd.read_csv(tmp_path / "train.csv")
+    before_last_update = (log["frames"] < log["frames"].max()).sum()  # episodes done when it ran
+    lr = load_checkpoint(tmp_path / "checkpoint.pt", task="lunarlander")["state"]["optim"]["param_groups"][0]["lr"]
+    assert 0 < before_last_update < 6 and lr == pytest.approx(5e-4 * (1 - before_last_update / 6))
+
+
+def test_an_unknown_lr_schedule_is_refused(tmp_path):
+    with pytest.raises(ConfigError, match="optim.lr_schedule"):
+        run_recipe("lunarlander", tmp_path, "optim.lr_schedule=cosine")
+
+
+def test_keep_best_makes_the_best_checks_machine_the_result(tmp_path):
+    run_recipe("lunarlander", tmp_path, "train.keep_best=true", "train.stop_eval_episodes=2")
+    checks = pd.read_csv(tmp_path / "stop_checks.csv")
+    assert checks["episode"].tolist() == [3, 6] and len(pd.read_csv(tmp_path / "train.csv")) == 6
+    best = checks.loc[checks["success"].idxmax(), "episode"]  # the first of equal checks
+    for name in ("checkpoint.pt", "best.pt"):
+        assert load_checkpoint(tmp_path / name, task="lunarlander")["episodes"] == best
+    assert (tmp_path / "eval.csv").exists()
+
+
+def test_restore_best_brings_back_the_kept_checkpoint(tmp_path):
+    from dcsc_torchrl.training import TrainingRun
+
+    net = torch.nn.Linear(1, 1)
+    run = TrainingRun("lunarlander", out_dir=tmp_path, episodes=10, checkpoint_every=5, seed=0,
+                      config={"seed": 0}, columns=["episode", "frames"], stateful={"net": net})
+    run.start(resume=False)
+    torch.nn.init.constant_(net.weight, 1.0)
+    run.episodes = 5
+    run.end_segment()
+    run.keep_best()  # the check after segment 1 was the best
+    torch.nn.init.constant_(net.weight, 2.0)
+    run.episodes = 10
+    run.end_segment()
+    run.restore_best()
+    assert net.weight.item() == 1.0 and run.episodes == 5 and run.segment == 1
+    assert load_checkpoint(tmp_path / "checkpoint.pt", task="lunarlander")["state"]["net"]["weight"].item() == 1.0
