@@ -39,7 +39,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import pandas as pd
 import torch
@@ -302,13 +302,67 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return add_run_options(parser).parse_args(argv)
 
 
+@dataclass
+class GridResult:
+    """What a run of the grid did: the cells it ran, those done before (skipped), those that failed."""
+
+    out: Path
+    ran: list[Cell]
+    skipped: list[Cell]
+    failed: list[dict[str, Any]]
+
+
+class Executor(Protocol):
+    """Runs the cells of a grid not done yet; returns those it ran and the failures (``{cell, task, ...}`` rows)."""
+
+    def __call__(self, out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], methods: tuple[str, ...], *,
+                 quick: bool) -> tuple[list[Cell], list[dict[str, Any]]]: ...
+
+
+def local_executor(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], methods: tuple[str, ...], *,
+                   quick: bool) -> tuple[list[Cell], list[dict[str, Any]]]:
+    """The cells one after another in this process, the task's outputs gathered after each.
+
+    A cell that raises stops the run (its folder has no ``cell.json``: the next run redoes
+    it); ``dcsc sweep``'s Ray executor retries and reports instead.
+    """
+    by_task = {grid.task: grid for grid in grids}
+    ran: list[Cell] = []
+    with Progress(len(cells), "cells", "cell", every=0) as progress:
+        for cell in cells:
+            grid = by_task[cell.task]
+            machine, critic = pretrained_machine(get_task(cell.task), grid.cfg, cell.pretrain_seed, quick=quick)
+            write_cell(cell, grid.cfg, methods, out, machine, critic)
+            gather(out, grid)
+            ran.append(cell)
+            progress.set_postfix(last=cell.name)
+            progress.update()
+    return ran, []
+
+
+def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], executor: Executor, *,
+             quick: bool = False, fresh: bool = False) -> GridResult:
+    """The one driver of the grid: claims each task's folder, runs the cells not done yet with
+    ``executor`` (:func:`local_executor`, or ``dcsc sweep``'s Ray tasks), then gathers every
+    task's outputs (:func:`gather`, the one writer), the failures reported."""
+    for grid in grids:
+        prepare_results(out / grid.task, run_record(grid, methods), fresh=fresh)
+    cells = [cell for grid in grids for cell in grid.cells]
+    todo = [cell for cell in cells if not cell.done(out)]
+    ran, failed = executor(out, grids, todo, methods, quick=quick) if todo else ([], [])
+    for grid in grids:
+        gather(out, grid, [row for row in failed if row["task"] == grid.task])
+    return GridResult(out, ran, [cell for cell in cells if cell not in todo], failed)
+
+
 def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False, overrides: Sequence[str] = (),
              methods: Sequence[str] | None = None, operators: Sequence[str] | None = None,
              fresh: bool = False) -> Path:
-    """Every cell of ``task_name`` not done yet, the outputs gathered after each; returns ``out/<task>``.
+    """Every cell of ``task_name`` not done yet, one after another (:func:`run_grid` with the
+    :func:`local_executor`); returns ``out/<task>``.
 
     Everything named (config keys, methods, operator presets, the results folder's
-    earlier config) is checked before a machine is loaded or pretrained.
+    earlier config, the checkpoints there are) is checked before a machine is loaded or pretrained.
     """
     task = get_task(task_name)
     cfg = task_config(task, overrides, quick=quick)
@@ -320,24 +374,11 @@ def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False
     grid = make_grid(task.name, cfg, presets, list(cfg.pretrain.seeds))
     out = Path(out)
     for seed in dict.fromkeys(cell.pretrain_seed for cell in grid.cells if not cell.done(out)):
-        if not cfg.pretrain.shipped and checkpoint_path(cfg.pretrain.out_dir, seed).exists():  # a broken one is refused before any cell runs
-            load_checkpoint(checkpoint_path(cfg.pretrain.out_dir, seed), task=task.name)
-    task_dir = out / task.name
-    prepare_results(task_dir, run_record(grid, methods), fresh=fresh)
+        if not cfg.pretrain.shipped and checkpoint_path(cfg.pretrain.out_dir, seed).exists():
+            load_checkpoint(checkpoint_path(cfg.pretrain.out_dir, seed), task=task.name)  # a broken one: refused now
     torch.set_num_threads(cfg.threads)
-
-    done = sum(cell.done(out) for cell in grid.cells)
-    with Progress(len(grid.cells), f"{task.name} cells", "cell", initial=done, every=0) as progress:
-        for cell in grid.cells:
-            if cell.done(out):
-                continue
-            machine, critic = pretrained_machine(task, cfg, cell.pretrain_seed, quick=quick)
-            write_cell(cell, cfg, methods, out, machine, critic)
-            gather(out, grid)
-            progress.set_postfix(last=cell.name)
-            progress.update()
-    if not (task_dir / "summary.md").exists() or done == len(grid.cells):
-        gather(out, grid)  # every cell was done before: the outputs, redrawn from them
+    run_grid(out, [grid], methods, local_executor, quick=quick, fresh=fresh)
+    task_dir = out / task.name
     print(f"results in {task_dir}", file=sys.stderr, flush=True)
     return task_dir
 

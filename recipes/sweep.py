@@ -14,9 +14,10 @@ sweep runs the grid of cells as Ray tasks, one CPU each (docs/scaling.md):
    ``theta.csv``, ``summary.md`` and the figures: the files ``make reproduce`` writes, rows
    in the same order.
 
-These are the files ``dcsc run`` writes (``recipes/shared_control.py`` holds the cell, its
-files and the gathering; this module adds Ray), so a sweep and a serial run can finish each
-other's folders; a folder of another config is refused unless ``--fresh``.
+These are the files ``dcsc run`` writes: both are ``recipes.shared_control.run_grid``, the
+one driver of the grid, ``dcsc run`` with its local executor (one cell after another) and
+the sweep with Ray's (this module), so a sweep and a serial run can finish each other's
+folders; a folder of another config is refused unless ``--fresh``.
 
 A cell that raises is re-run by Ray (``ray.retries`` times); one that keeps failing is
 listed with its error in ``DIR/<task>/failed_cells.csv`` and in a "Failed cells" section
@@ -39,7 +40,6 @@ import re
 import socket
 import sys
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -57,29 +57,20 @@ from dcsc_torchrl.tasks import TASK_NAMES, get_task
 from recipes.shared_control import (
     TABLES,
     Cell,
+    Executor,
+    GridResult,
     TaskGrid,
     gather,
     make_grid,
-    prepare_results,
     pretrained_machine,
-    run_record,
+    run_grid,
     task_config,
     write_cell,
 )
 
 CONFIG = Path(__file__).with_suffix(".yaml")
-__all__ = ["TABLES", "Cell", "SweepResult", "TaskGrid", "gather", "main", "run_sweep", "split_overrides", "sweep",
-           "task_grid"]
-
-
-@dataclass
-class SweepResult:
-    """What a sweep did: the cells it ran, those done before (skipped), those that failed."""
-
-    out: Path
-    ran: list[Cell]
-    skipped: list[Cell]
-    failed: list[dict[str, Any]]
+__all__ = ["TABLES", "Cell", "GridResult", "TaskGrid", "gather", "main", "ray_executor", "run_sweep",
+           "split_overrides", "sweep", "task_grid"]
 
 
 def task_grid(task: str, sweep: DictConfig, overrides: Sequence[str] = (), *, quick: bool) -> TaskGrid:
@@ -154,9 +145,30 @@ def connect(address: str | None, workers: int) -> bool:
     return True
 
 
-def run_cells(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], methods: tuple[str, ...], *,
-              quick: bool, retries: int) -> tuple[list[Cell], list[dict[str, Any]]]:
-    """Runs ``cells`` (after the pretrainings they need) as Ray tasks; returns those done and the failures."""
+def ray_executor(*, retries: int, address: str | None, workers: int) -> Executor:
+    """An :class:`~recipes.shared_control.Executor` running cells as Ray tasks.
+
+    One Ray task per pretraining checkpoint the cells need (:func:`ensure_pretrained`), then
+    one per cell, started once its checkpoint is there; Ray re-runs a failing one
+    ``retries`` times, and one that keeps failing is reported (``failed_cells.csv``) while
+    the others' rows are kept. ``address``: a Ray cluster to join, ``None``: a local instance
+    of ``workers`` CPUs (shut down afterwards).
+    """
+
+    def execute(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], methods: tuple[str, ...], *,
+                quick: bool) -> tuple[list[Cell], list[dict[str, Any]]]:
+        started = connect(address, workers)
+        try:
+            return _run_cells(out, grids, cells, methods, quick=quick, retries=retries)
+        finally:
+            if started:
+                ray.shutdown()
+
+    return execute
+
+
+def _run_cells(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], methods: tuple[str, ...], *,
+               quick: bool, retries: int) -> tuple[list[Cell], list[dict[str, Any]]]:
     cfgs = {grid.task: grid.cfg for grid in grids}
     retry = {"max_retries": retries, "retry_exceptions": True}
     checkpoints = {
@@ -187,8 +199,8 @@ def run_cells(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], metho
 
 
 def run_sweep(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...] = METHOD_NAMES, *, quick: bool = False,
-              retries: int = 2, address: str | None = None, workers: int = 2, fresh: bool = False) -> SweepResult:
-    """Every cell of ``grids`` not done yet, as Ray tasks, then every task's outputs gathered.
+              retries: int = 2, address: str | None = None, workers: int = 2, fresh: bool = False) -> GridResult:
+    """Every cell of ``grids`` not done yet, as Ray tasks: :func:`run_grid` with :func:`ray_executor`.
 
     Args:
         out: the results root (``out/<task>/...``).
@@ -200,23 +212,8 @@ def run_sweep(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...] = M
         workers: CPUs of the local instance.
         fresh: delete each task's earlier results first (else a folder of another config is refused).
     """
-    out = out.resolve()
-    for grid in grids:
-        prepare_results(out / grid.task, run_record(grid, methods), fresh=fresh)
-    cells = [cell for grid in grids for cell in grid.cells]
-    todo = [cell for cell in cells if not cell.done(out)]
-    ran: list[Cell] = []
-    failed: list[dict[str, Any]] = []
-    if todo:
-        started = connect(address, workers)
-        try:
-            ran, failed = run_cells(out, grids, todo, methods, quick=quick, retries=retries)
-        finally:
-            if started:
-                ray.shutdown()
-    for grid in grids:
-        gather(out, grid, [row for row in failed if row["task"] == grid.task])
-    return SweepResult(out, ran, [cell for cell in cells if cell not in todo], failed)
+    return run_grid(out.resolve(), grids, methods, ray_executor(retries=retries, address=address, workers=workers),
+                    quick=quick, fresh=fresh)
 
 
 def split_overrides(overrides: Sequence[str]) -> tuple[list[str], dict[str, list[str]]]:
@@ -237,7 +234,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return add_sweep_options(Parser(description=__doc__.split("\n\n")[0])).parse_args(argv)
 
 
-def sweep(args: argparse.Namespace) -> SweepResult:
+def sweep(args: argparse.Namespace) -> GridResult:
     """``dcsc sweep``: the configs checked, every cell not done yet run, every task gathered."""
     sweep_overrides, task_overrides = split_overrides(args.overrides)
     cfg = load_config(CONFIG, sweep_overrides, quick=args.quick)
@@ -253,7 +250,7 @@ def sweep(args: argparse.Namespace) -> SweepResult:
     return result
 
 
-def main(argv: Sequence[str] | None = None) -> SweepResult:
+def main(argv: Sequence[str] | None = None) -> GridResult:
     return sweep(parse_args(argv))
 
 
