@@ -237,14 +237,11 @@ def _sweep(args: argparse.Namespace) -> Any:
 
 
 def _play(args: argparse.Namespace) -> None:
-    checkpoint = args.checkpoint
     from dcsc_torchrl.config import UsageError
-    from dcsc_torchrl.humans.play import main as play_main
+    from dcsc_torchrl.humans.play import run_play
 
     try:
-        play_main([args.task, "--assist", args.assist, *(["--checkpoint", str(checkpoint)] if checkpoint else []),
-                   "--episodes", str(args.episodes), "--seed", str(args.seed), "--out", str(args.out),
-                   "--participant", args.participant])
+        run_play(args)
     except SystemExit as stop:  # play's own message (no checkpoint, no display): a usage error
         if isinstance(stop.code, str):
             raise UsageError(stop.code.removeprefix("dcsc play: ")) from None

@@ -286,8 +286,12 @@ def play(
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """Entry point of ``dcsc play`` (``argv`` = ``["lunarlander", *options]``)."""
-    args = build_parser().parse_args(argv)
+    """Entry point of ``python -m dcsc_torchrl.humans.play`` (``argv`` = ``["lunarlander", *options]``)."""
+    run_play(build_parser().parse_args(argv))
+
+
+def run_play(args: argparse.Namespace) -> None:
+    """A play session with the options of :func:`dcsc_torchrl.cli.add_play_options` (``dcsc play`` calls it)."""
     cfg = play_config()
     confidence = HumanConfidenceTransform(**cfg.human)
     try:
