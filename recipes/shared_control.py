@@ -321,19 +321,22 @@ class Executor(Protocol):
 
 def local_executor(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], methods: tuple[str, ...], *,
                    quick: bool) -> tuple[list[Cell], list[dict[str, Any]]]:
-    """The cells one after another in this process, the task's outputs gathered after each.
+    """The cells one after another in this process, the task's outputs gathered after each
+    but its last (:func:`run_grid` gathers every task once the executor returns).
 
     A cell that raises stops the run (its folder has no ``cell.json``: the next run redoes
     it); ``dcsc sweep``'s Ray executor retries and reports instead.
     """
     by_task = {grid.task: grid for grid in grids}
+    last = {cell.task: cell for cell in cells}
     ran: list[Cell] = []
     with Progress(len(cells), "cells", "cell", every=0) as progress:
         for cell in cells:
             grid = by_task[cell.task]
             machine, critic = pretrained_machine(get_task(cell.task), grid.cfg, cell.pretrain_seed, quick=quick)
             write_cell(cell, grid.cfg, methods, out, machine, critic)
-            gather(out, grid)
+            if cell is not last[cell.task]:
+                gather(out, grid)
             ran.append(cell)
             progress.set_postfix(last=cell.name)
             progress.update()
