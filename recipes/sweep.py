@@ -238,12 +238,13 @@ def sweep(args: argparse.Namespace) -> GridResult:
     """``dcsc sweep``: the configs checked, every cell not done yet run, every task gathered."""
     sweep_overrides, task_overrides = split_overrides(args.overrides)
     cfg = load_config(CONFIG, sweep_overrides, quick=args.quick)
-    unknown = sorted({*cfg.tasks} - set(TASK_NAMES)) + sorted({*cfg.methods} - set(METHOD_NAMES))
+    methods = tuple(cfg.methods or METHOD_NAMES)
+    unknown = sorted({*cfg.tasks} - set(TASK_NAMES)) + sorted({*methods} - set(METHOD_NAMES))
     if unknown:
         raise ValueError(f"unknown tasks or methods {unknown}: tasks are {list(TASK_NAMES)}, methods {list(METHOD_NAMES)}")
     grids = [task_grid(task, cfg, task_overrides[task], quick=args.quick) for task in cfg.tasks]
     out = args.out or Path("results/quick" if args.quick else "results")
-    result = run_sweep(out, grids, tuple(cfg.methods), quick=args.quick, retries=cfg.ray.retries,
+    result = run_sweep(out, grids, methods, quick=args.quick, retries=cfg.ray.retries,
                        address=args.address or cfg.ray.address, workers=cfg.ray.workers, fresh=args.fresh)
     print(f"{len(result.ran)} cells ran, {len(result.skipped)} were done already, {len(result.failed)} failed; "
           f"results in {result.out}", file=sys.stderr, flush=True)

@@ -158,6 +158,23 @@ def test_theta_moves_towards_the_partner_that_is_right(arbiter, right, towards):
     assert (after > before) if towards == "machine" else (after < before)
 
 
+def test_a_held_critic_stays_exactly_as_warmed_up_while_theta_learns_from_it():
+    """``critic_lr=0.0`` (LunarLander's default): the online steps move theta, not the critic."""
+    torch.manual_seed(0)
+    policy = SharedPolicyModule(MCDropoutPolicy(dropout_net()), CentredConfidenceArbiter(0.0), OneHot(4))
+    learner = DiscreteOnlineLearner(policy, lunar_critic([16], 4), theta_lr=0.5, critic_lr=0.0, gamma=0.99, tau=1e-3,
+                                    updates_per_batch=3)
+    batch = scripted_batch(policy, machine_key=0, human_key=1)
+    batch["next", "observation"] = torch.randn(64, 8)
+    batch["next", "reward"] = torch.randn(64, 1)
+    held = {name: p.detach().clone() for name, p in learner.critic_params.items(True, True)}
+    before = policy["arbiter"].theta.item()
+    learner(batch)
+    assert policy["arbiter"].theta.item() != before
+    assert all(torch.equal(p, held[name]) for name, p in learner.critic_params.items(True, True))
+    assert all(row["loss_critic"] > 0 for row in learner.history)  # the TD loss is still computed and logged
+
+
 # --- confidences that carry signal --------------------------------------------------------
 
 
