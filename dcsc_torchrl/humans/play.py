@@ -6,8 +6,8 @@ The frames of a ``render_mode="rgb_array"`` TargetLunarLander go to the
 :class:`~dcsc_torchrl.humans.KeyboardPilot`'s window. With ``--assist dcsc`` the
 pretrained machine (MC dropout, Eqs. 10, 13) shares control with you through the learned
 arbiter of the simulated runs (``arbiter.form`` of ``recipes/shared_control_lunarlander.yaml``),
-and theta and the Q critic learn online as in Algorithm 1, once every
-``protocol.rollout_length`` frames; b_h, b_m and beta are drawn live on screen. Alone, your
+and theta (and the Q critic, unless the yaml's ``online.critic_lr`` is 0) learn online as
+in Algorithm 1, once every ``protocol.rollout_length`` frames; b_h, b_m and beta are drawn live on screen. Alone, your
 b_h (Eqs. 6, 9) and last RT are.
 
 Every play writes what the simulated runs write, into ``--out`` (default
@@ -233,7 +233,7 @@ def play(
     Episode ``i`` plays scenario ``seed + i`` (the pad the simulated runs draw for that
     seed). With a ``learner`` (an :class:`~dcsc_torchrl.online.OnlineLearner`), every
     ``rollout_length`` frames are handed to it as a batch ``[1, rollout_length]``
-    (Algorithm 1: theta and the critic learn while the person flies). With a
+    (Algorithm 1: theta, and the critic unless held, learn while the person flies). With a
     ``recorder``, every frame and every finished episode is written.
     """
     summaries: list[dict[str, Any]] = []
