@@ -1,34 +1,25 @@
 """The two tasks' environments as batched TorchRL envs, built the same way by every recipe.
 
-Building a vector env, ``GymWrapper`` runs a dummy rollout and logs two INFO lines
-("info_dict_reader does not have specs", "check_env_specs succeeded!"), dozens per run:
-:func:`quiet_torchrl` holds TorchRL's logger at WARNING while an env is built, unless
-``DCSC_VERBOSE`` is set (``dcsc -v``).
+LunarLander: :class:`TargetLunarLanderBatch`, ``N`` :class:`envs.TargetLunarLander` stepped
+by one native TorchRL call (written for speed: TorchRL's ``GymWrapper`` over a gymnasium
+``SyncVectorEnv`` spent more per call on its wrapper and info-dict reader than on the
+physics; docs/pretraining.md, "Speed"). UAV: the native batched
+:class:`envs.UAVPathPlanningEnv`. Both end with ``RewardSum`` and ``StepCounter``.
 """
 
 from __future__ import annotations
 
-import contextlib
-import logging
-import os
-from collections.abc import Iterator
+from typing import Any
 
 import gymnasium as gym
+import numpy as np
 import torch
-from gymnasium.vector import AutoresetMode
-from torchrl.data import Categorical, Composite
-from torchrl.envs import (
-    Compose,
-    EnvBase,
-    GymWrapper,
-    RewardSum,
-    StepCounter,
-    Transform,
-    TransformedEnv,
-)
-from torchrl.envs.libs.gym import default_info_dict_reader
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, OneHot, Unbounded
+from torchrl.envs import Compose, EnvBase, RewardSum, StepCounter, Transform, TransformedEnv
 
 import envs  # noqa: F401  (registers the dcsc/* gymnasium ids)
+from envs.target_lunar_lander import TargetLunarLander
 from envs.uav import UAVPathPlanningEnv
 
 LUNAR_ID = "dcsc/TargetLunarLander-v0"
@@ -36,17 +27,103 @@ LUNAR_INFO_KEYS = ("success", "crashed", "landed_outside")
 UAV_INFO_KEYS = ("success", "collision", "out_of_bounds", "path_length")
 
 
-@contextlib.contextmanager
-def quiet_torchrl() -> Iterator[None]:
-    """TorchRL's INFO lines silenced inside the block (kept when ``DCSC_VERBOSE`` is set)."""
-    logger = logging.getLogger("torchrl")
-    level = logger.level
-    if not os.environ.get("DCSC_VERBOSE"):
-        logger.setLevel(max(level, logging.WARNING))
-    try:
-        yield
-    finally:
-        logger.setLevel(level)
+class TargetLunarLanderBatch(EnvBase):
+    """``num_envs`` TargetLunarLanders as one native batched TorchRL env (discrete actions).
+
+    Keys, all of batch ``[num_envs]``: ``observation`` ``[9]`` (gymnasium's eight values and
+    the pad's x), one-hot ``action`` ``[4]`` (no-op, left, main, right engine), ``reward``
+    ``[1]``, ``done`` / ``terminated`` / ``truncated`` ``[1]`` and the episode flags
+    ``success`` / ``crashed`` / ``landed_outside`` (bools, ``[]``: the env's ``info``).
+
+    It plays the same episodes as gymnasium's ``SyncVectorEnv`` of the registered id under
+    TorchRL's ``GymWrapper`` (tested frame by frame): ``set_seed(s)`` resets env ``i`` with
+    seed ``s + i``, every later reset draws from that env's own RNG, and an episode is
+    truncated after ``max_steps`` frames (the id's ``TimeLimit``, 1000). A done env is reset
+    when the collector (or ``rollout``) asks for it through ``"_reset"``.
+
+    Args:
+        num_envs: the envs stepped by one call.
+        random_pad: ``False`` keeps the pad at the centre (the standard task).
+        max_steps: the frames after which an episode is truncated (default: the id's 1000).
+
+    Examples:
+        >>> env = TargetLunarLanderBatch(3, random_pad=False)
+        >>> _ = env.set_seed(0)
+        >>> env.rollout(5)["next", "observation"].shape
+        torch.Size([3, 5, 9])
+    """
+
+    def __init__(self, num_envs: int, *, random_pad: bool = True, max_steps: int | None = None) -> None:
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        max_steps = gym.spec(LUNAR_ID).max_episode_steps if max_steps is None else max_steps
+        if max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+        super().__init__(batch_size=torch.Size([num_envs]))
+        self.max_steps = int(max_steps)
+        self._envs = [TargetLunarLander(random_pad=random_pad) for _ in range(num_envs)]
+        self._observation = np.zeros((num_envs, 9), dtype=np.float32)
+        self._elapsed = np.zeros(num_envs, dtype=np.int64)
+        space = self._envs[0].observation_space
+        batch = self.batch_size
+
+        def flag(*shape: int) -> Categorical:
+            return Categorical(2, shape=(*batch, *shape), dtype=torch.bool)
+
+        self.action_spec = OneHot(4, shape=(*batch, 4), dtype=torch.int64)
+        self.observation_spec = Composite(
+            observation=Bounded(torch.as_tensor(space.low).expand(*batch, 9).clone(),
+                                torch.as_tensor(space.high).expand(*batch, 9).clone(), shape=(*batch, 9)),
+            **{key: flag() for key in LUNAR_INFO_KEYS},
+            shape=batch,
+        )
+        self.reward_spec = Unbounded((*batch, 1))
+        self.done_spec = Composite(done=flag(1), terminated=flag(1), truncated=flag(1), shape=batch)
+
+    def _set_seed(self, seed: int | None) -> None:
+        for i, env in enumerate(self._envs):
+            self._observation[i], _ = env.reset(seed=None if seed is None else seed + i)
+            self._elapsed[i] = 0
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
+        reset = None if tensordict is None else tensordict.get("_reset", None)
+        rows = range(len(self._envs)) if reset is None else reset.reshape(len(self._envs), -1).any(-1).nonzero()
+        for i in map(int, rows):
+            self._observation[i], _ = self._envs[i].reset()
+            self._elapsed[i] = 0
+        false = torch.zeros((*self.batch_size, 1), dtype=torch.bool)
+        return TensorDict(
+            {"observation": torch.from_numpy(self._observation.copy()),
+             **{key: false.squeeze(-1).clone() for key in LUNAR_INFO_KEYS},
+             **{key: false.clone() for key in ("done", "terminated", "truncated")}},
+            batch_size=self.batch_size,
+        )
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        actions = tensordict.get("action").argmax(-1).tolist()
+        n = len(self._envs)
+        reward = np.empty(n, dtype=np.float32)
+        terminated = np.empty(n, dtype=bool)
+        flags = {key: np.empty(n, dtype=bool) for key in LUNAR_INFO_KEYS}
+        for i, (env, action) in enumerate(zip(self._envs, actions, strict=True)):
+            self._observation[i], reward[i], terminated[i], _, info = env.step(action)
+            for key, flag in flags.items():
+                flag[i] = info[key]
+        self._elapsed += 1
+        terminated_tensor = torch.from_numpy(terminated).unsqueeze(-1)
+        truncated = torch.from_numpy(self._elapsed >= self.max_steps).unsqueeze(-1)
+        return TensorDict(
+            {"observation": torch.from_numpy(self._observation.copy()),
+             "reward": torch.from_numpy(reward).unsqueeze(-1),
+             **{key: torch.from_numpy(flag) for key, flag in flags.items()},
+             "done": terminated_tensor | truncated, "terminated": terminated_tensor, "truncated": truncated},
+            batch_size=self.batch_size,
+        )
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        for env in self._envs:
+            env.close()
+        super().close(raise_if_closed=raise_if_closed)
 
 
 def make_lunar_env(
@@ -56,37 +133,14 @@ def make_lunar_env(
     max_steps: int | None = None,
     transforms: list[Transform] | None = None,
 ) -> TransformedEnv:
-    """``num_envs`` TargetLunarLanders stepped by one TorchRL call.
+    """``num_envs`` TargetLunarLanders stepped by one TorchRL call (:class:`TargetLunarLanderBatch`),
+    then ``transforms`` (e.g. the operator's), ``RewardSum`` and ``StepCounter``.
 
-    A gymnasium ``SyncVectorEnv`` (same-step autoreset, as TorchRL expects) under
-    ``GymWrapper``, with ``success`` / ``crashed`` / ``landed_outside`` read from
-    ``info``, then ``transforms`` (e.g. the operator's), ``RewardSum`` and
-    ``StepCounter``. ``render_mode`` stays ``None`` (docs/envs.md: flame particles pile up otherwise). ``max_steps``
+    ``render_mode`` stays ``None`` (docs/envs.md: flame particles pile up otherwise). ``max_steps``
     overrides the 1000-frame timeout.
     """
-    if num_envs < 1:
-        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-    vector = gym.make_vec(
-        LUNAR_ID,
-        num_envs=num_envs,
-        vectorization_mode="sync",
-        vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP},
-        random_pad=random_pad,
-        disable_env_checker=True,
-        **({} if max_steps is None else {"max_episode_steps": max_steps}),
-    )
-    with quiet_torchrl():
-        base = GymWrapper(vector)
-    info_spec = Composite(
-        {key: Categorical(2, shape=(num_envs,), dtype=torch.bool) for key in LUNAR_INFO_KEYS},
-        shape=[num_envs],
-    )
-    base.set_info_dict_reader(default_info_dict_reader(list(LUNAR_INFO_KEYS), spec=info_spec))
-    # GymWrapper already returns a TransformedEnv (TorchRL's VecGymEnvTransform) for a
-    # vector env: extend it rather than nesting a second TransformedEnv around it
-    for transform in [*(transforms or []), RewardSum(), StepCounter()]:
-        base.append_transform(transform)
-    return base
+    base = TargetLunarLanderBatch(num_envs, random_pad=random_pad, max_steps=max_steps)
+    return TransformedEnv(base, Compose(*(transforms or []), RewardSum(), StepCounter()))
 
 
 def make_uav_env(

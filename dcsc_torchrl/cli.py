@@ -292,9 +292,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     debug = "--debug" in argv or os.environ.get("DCSC_DEBUG", "") not in ("", "0")
     try:
         args = build_parser().parse_args(argv)
-        if args.verbose:
-            os.environ["DCSC_VERBOSE"] = "1"
-        else:
+        if not args.verbose:
             os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # read once, when TorchRL is imported
         args.handler(args)
     except KeyboardInterrupt:

@@ -325,10 +325,9 @@ def test_an_old_folder_without_a_record_is_refused_and_fresh_starts_over(tmp_pat
 
 
 # -- logs and Ctrl-C --------------------------------------------------------------------
-def test_building_an_env_logs_no_torchrl_info(monkeypatch):
+def test_building_an_env_logs_no_torchrl_info():
     from dcsc_torchrl.batched_envs import make_lunar_env
 
-    monkeypatch.delenv("DCSC_VERBOSE", raising=False)
     records: list[logging.LogRecord] = []
     handler = logging.Handler()
     handler.emit = records.append

@@ -206,3 +206,51 @@ def test_rgb_array_without_render_keeps_flame_particles_bounded():
         if terminated:
             env.reset()
     assert 0 < len(env.particles) <= MAX_PARTICLES
+
+
+# -- the native batched env (dcsc_torchrl.batched_envs.TargetLunarLanderBatch) ----------
+def _gym_vector_reference(num_envs: int, random_pad: bool, max_steps: int):
+    """What the batched env replaces: gymnasium's SyncVectorEnv of the id under GymWrapper."""
+    from gymnasium.vector import AutoresetMode
+    from torchrl.data import Categorical, Composite
+    from torchrl.envs.libs.gym import default_info_dict_reader
+
+    keys = ["success", "crashed", "landed_outside"]
+    spec = Composite({key: Categorical(2, shape=(num_envs,), dtype=torch.bool) for key in keys}, shape=[num_envs])
+    vector = gym.make_vec(ENV_ID, num_envs=num_envs, vectorization_mode="sync",
+                          vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP},
+                          random_pad=random_pad, max_episode_steps=max_steps, disable_env_checker=True)
+    env = GymWrapper(vector)
+    env.set_info_dict_reader(default_info_dict_reader(keys, spec=spec))
+    return env
+
+
+@pytest.mark.parametrize("random_pad", [False, True])
+def test_batched_env_plays_the_episodes_of_gymnasiums_vector_env_frame_by_frame(random_pad):
+    from dcsc_torchrl.batched_envs import TargetLunarLanderBatch
+
+    frames, num_envs, max_steps = 400, 3, 150  # several episodes per env: crashes, timeouts, resets
+    rollouts = []
+    for env in (TargetLunarLanderBatch(num_envs, random_pad=random_pad, max_steps=max_steps),
+                _gym_vector_reference(num_envs, random_pad, max_steps)):
+        env.set_seed(7)
+        torch.manual_seed(0)
+        rollouts.append(env.rollout(frames, break_when_any_done=False))
+        env.close()
+    ours, reference = rollouts
+    assert reference["next", "done"].sum() >= 2 * num_envs  # the frames cross several resets
+    for key in ["observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
+                ("next", "terminated"), ("next", "truncated"), ("next", "success"), ("next", "crashed"),
+                ("next", "landed_outside")]:
+        torch.testing.assert_close(ours[key], reference[key].reshape(ours[key].shape), rtol=0, atol=0,
+                                   msg=lambda m, key=key: f"{key}: {m}")
+
+
+def test_batched_env_passes_check_env_specs_and_refuses_bad_sizes():
+    from dcsc_torchrl.batched_envs import TargetLunarLanderBatch
+
+    check_env_specs(TargetLunarLanderBatch(2))
+    with pytest.raises(ValueError, match="num_envs must be >= 1, got 0"):
+        TargetLunarLanderBatch(0)
+    with pytest.raises(ValueError, match="max_steps must be >= 1, got 0"):
+        TargetLunarLanderBatch(1, max_steps=0)
