@@ -24,6 +24,7 @@ reproduce: install
 bench: install
 	$(PY) -m pip install -e ".[bench]"
 	for b in bench/bench_*.py; do $(PY) $$b || exit 1; done
+	$(PY) bench/bench_pretrain.py --task uav --frames 8000  # DDPG against SB3 (the loop above ran A2C)
 
 lint: install
 	$(PY) -m ruff check dcsc_torchrl envs recipes tests bench

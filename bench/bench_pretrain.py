@@ -1,22 +1,32 @@
-"""A2C pretraining throughput: this project's recipe vs Stable-Baselines3's A2C, same run.
+"""Pretraining throughput: this project's recipes vs Stable-Baselines3, same run, as a ratio.
 
-Both train with the recipe's number of envs and rollout length (``env.num_envs`` x
-``collector.rollout_length`` of ``recipes/pretrain_a2c_lunarlander.yaml``; ours:
-TargetLunarLanders with the pad at the centre, SB3: LunarLander-v3), one torch thread
-each, and report frames/s including environment stepping and updates. SB3 is built as
-its docs recommend, ``make_vec_env`` (a ``DummyVecEnv`` of ``Monitor``-wrapped envs), but
-with ``render_mode=None``: ``make_vec_env``'s default ``render_mode="rgb_array"`` keeps a
-Box2D body per flame particle that only ``render()`` removes and would slow SB3 down
-unfairly. The two are run alternately ``--repeats`` times (the machine's load drifts) and
-the medians are compared. SB3 is installed only for this benchmark (``pip install -e
-.[bench]``, done by ``make bench``).
+``--task lunarlander`` (default): A2C. Both train with the recipe's number of envs and
+rollout length (``env.num_envs`` x ``collector.rollout_length`` of
+``recipes/pretrain_a2c_lunarlander.yaml``; ours: TargetLunarLanders with the pad at the
+centre in one native batched env, SB3: LunarLander-v3), Table A1's hyperparameters. SB3
+is built as its docs recommend, ``make_vec_env`` (a ``DummyVecEnv`` of ``Monitor``-wrapped
+envs), but with ``render_mode=None``: ``make_vec_env``'s default ``render_mode="rgb_array"``
+keeps a Box2D body per flame particle that only ``render()`` removes and would slow SB3
+down unfairly. Ours includes the Q critic's updates, which SB3's A2C does not do.
 
-    python bench/bench_pretrain.py [--frames 20000] [--repeats 3] [--envs N] [--rollout T]
+``--task uav``: DDPG at the same update-to-data ratio, batch, networks and random start
+(``recipes/pretrain_ddpg_uav.yaml``: 16 envs x 10 steps per round, 0.25 gradient steps
+per frame, batch 128, 256-256 MLPs, 2000 random frames). Ours steps the 16 scenarios as
+one batched torch env; SB3 steps 16 copies of the gymnasium id
+``dcsc/UAVPathPlanning-v0`` in a ``DummyVecEnv`` (``train_freq`` 10 steps, 40 gradient
+steps a round), the way a user of SB3 would run it.
+
+Both sides: one torch thread, frames/s including env stepping and updates, run
+alternately ``--repeats`` times (the machine's load drifts), medians compared. SB3 is
+installed only for this benchmark (``pip install -e .[bench]``, done by ``make bench``).
+
+    python bench/bench_pretrain.py [--task lunarlander|uav] [--frames N] [--repeats 3] [--envs N] [--rollout T]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import statistics
 import tempfile
 import time
@@ -24,36 +34,66 @@ from pathlib import Path
 
 import pandas as pd
 import torch
+from omegaconf import DictConfig
 
 from dcsc_torchrl.config import load_config
 
-RECIPE_CONFIG = Path(__file__).resolve().parents[1] / "recipes" / "pretrain_a2c_lunarlander.yaml"
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+TASKS = {  # task: (recipe module, frames per episode to size the episode budget, the eval switch-off)
+    "lunarlander": ("pretrain_a2c_lunarlander", 110, "eval.episodes=0"),
+    "uav": ("pretrain_ddpg_uav", 120, "eval.scenarios=0"),
+}
 
 
-def ours(frames: int, out: Path, *overrides: str) -> tuple[float, int]:
-    """Frames/s of recipes/pretrain_a2c_lunarlander.py and the frames it ran, stopped by an episode budget.
+def ours(task: str, frames: int, out: Path, *overrides: str) -> tuple[float, int]:
+    """Frames/s of the task's pretraining recipe and the frames it ran, stopped by an episode budget.
 
-    The clock includes building the envs of each checkpointed segment, the Q critic's
-    updates and writing the checkpoints (the final evaluation is switched off), as a
-    user's run pays them too.
+    The clock includes building the envs of each checkpointed segment and writing the
+    checkpoints (the final evaluation is switched off), as a user's run pays them too.
     """
-    from recipes.pretrain_a2c_lunarlander import main
-
+    module, frames_per_episode, no_eval = TASKS[task]
+    main = importlib.import_module(f"recipes.{module}").main
     start = time.perf_counter()
-    main(["--out", str(out), f"train.episodes={max(1, frames // 110)}", "eval.episodes=0", *overrides])
+    main(["--out", str(out), f"train.episodes={max(1, frames // frames_per_episode)}", no_eval, *overrides])
     elapsed = time.perf_counter() - start
     done = int(pd.read_csv(out / "train.csv")["frames"].iloc[-1])
     return done / elapsed, done
 
 
-def sb3(frames: int, num_envs: int, rollout: int) -> float:
+def sb3_a2c(cfg: DictConfig, frames: int, num_envs: int, rollout: int) -> float:
     """Frames/s of SB3's A2C with Table A1's hyperparameters where they apply."""
     from stable_baselines3 import A2C
     from stable_baselines3.common.env_util import make_vec_env
 
     env = make_vec_env("LunarLander-v3", n_envs=num_envs, seed=0, env_kwargs={"render_mode": None})
-    model = A2C("MlpPolicy", env, n_steps=rollout, learning_rate=5e-4, gamma=0.99, gae_lambda=0.95,
-                ent_coef=0.01, vf_coef=0.5, max_grad_norm=0.5, seed=0, device="cpu")
+    model = A2C("MlpPolicy", env, n_steps=rollout, learning_rate=cfg.optim.lr, gamma=cfg.loss.gamma,
+                gae_lambda=cfg.loss.gae_lambda, ent_coef=cfg.loss.entropy_coeff, vf_coef=cfg.loss.critic_coeff,
+                max_grad_norm=cfg.optim.max_grad_norm, seed=0, device="cpu")
+    return _learn(model, env, frames)
+
+
+def sb3_ddpg(cfg: DictConfig, frames: int, num_envs: int, rollout: int) -> float:
+    """Frames/s of SB3's DDPG on the gymnasium id at the recipe's update-to-data ratio, batch and networks."""
+    import numpy as np
+    from stable_baselines3 import DDPG
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.noise import NormalActionNoise
+
+    import envs  # noqa: F401  (registers dcsc/UAVPathPlanning-v0)
+
+    env = make_vec_env("dcsc/UAVPathPlanning-v0", n_envs=num_envs, seed=0)
+    model = DDPG(
+        "MlpPolicy", env, learning_rate=cfg.optim.critic_lr, buffer_size=min(cfg.optim.buffer_size, frames),
+        learning_starts=cfg.collector.init_random_frames, batch_size=cfg.optim.batch_size,
+        tau=1.0 - cfg.loss.polyak, gamma=cfg.loss.gamma, train_freq=(rollout, "step"),
+        gradient_steps=round(cfg.optim.updates_per_frame * num_envs * rollout),
+        action_noise=NormalActionNoise(np.zeros(3), np.full(3, cfg.exploration.sigma_init)),
+        policy_kwargs={"net_arch": list(cfg.network.hidden)}, seed=0, device="cpu",
+    )
+    return _learn(model, env, frames)
+
+
+def _learn(model, env, frames: int) -> float:
     start = time.perf_counter()
     model.learn(total_timesteps=frames)
     elapsed = time.perf_counter() - start
@@ -63,6 +103,7 @@ def sb3(frames: int, num_envs: int, rollout: int) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--task", choices=sorted(TASKS), default="lunarlander")
     parser.add_argument("--frames", type=int, default=20000)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--envs", type=int, default=None, help="envs of both (default: the recipe's env.num_envs)")
@@ -70,21 +111,22 @@ def main() -> None:
                         help="frames per env per update, both (default: the recipe's collector.rollout_length)")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    cfg = load_config(RECIPE_CONFIG)
+    cfg = load_config(RECIPES / f"{TASKS[args.task][0]}.yaml")
     num_envs = int(cfg.env.num_envs) if args.envs is None else args.envs
     rollout = int(cfg.collector.rollout_length) if args.rollout is None else args.rollout
     envs = (f"env.num_envs={num_envs}", f"collector.rollout_length={rollout}")
+    sb3, algo = (sb3_a2c, "A2C") if args.task == "lunarlander" else (sb3_ddpg, "DDPG")
     ours_fps, sb3_fps = [], []
     for _ in range(args.repeats):
         with tempfile.TemporaryDirectory() as tmp:
-            fps, done = ours(args.frames, Path(tmp), *envs)
+            fps, done = ours(args.task, args.frames, Path(tmp), *envs)
         ours_fps.append(fps)
-        sb3_fps.append(sb3(done, num_envs, rollout))
+        sb3_fps.append(sb3(cfg, done, num_envs, rollout))
     ours_m, sb3_m = statistics.median(ours_fps), statistics.median(sb3_fps)
-    print(f"| A2C pretraining, {num_envs} envs x {rollout} steps, median of {args.repeats} | frames/s |")
+    print(f"| {algo} pretraining ({args.task}), {num_envs} envs x {rollout} steps, median of {args.repeats} | frames/s |")
     print("|---|---:|")
-    print(f"| dcsc-torchrl recipe (incl. the Q critic) | {ours_m:,.0f} |")
-    print(f"| Stable-Baselines3 A2C (`render_mode=None`) | {sb3_m:,.0f} |")
+    print(f"| dcsc-torchrl recipe{' (incl. the Q critic)' if algo == 'A2C' else ''} | {ours_m:,.0f} |")
+    print(f"| Stable-Baselines3 {algo}{' (`render_mode=None`)' if algo == 'A2C' else ''} | {sb3_m:,.0f} |")
     print(f"| ratio ours / SB3 | {ours_m / sb3_m:.2f} |")
 
 

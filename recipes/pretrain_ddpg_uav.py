@@ -120,10 +120,11 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     )
     curve = run.finish("DDPG on UAV path planning")
 
-    # --- machine-only evaluation on the validation scenarios ----------------------------
-    env = make_uav_env(cfg.eval.scenarios, scenario_seeds=list(range(cfg.eval.scenarios)), device=device)
-    rows = greedy_episodes(env, actor, 501, list(UAV_INFO_KEYS))
-    pd.DataFrame(rows).rename(columns={"env": "scenario"}).to_csv(run.out_dir / "eval.csv", index=False)
+    # --- machine-only evaluation on the validation scenarios (0 scenarios: skip) --------
+    if cfg.eval.scenarios > 0:
+        env = make_uav_env(cfg.eval.scenarios, scenario_seeds=list(range(cfg.eval.scenarios)), device=device)
+        rows = greedy_episodes(env, actor, 501, list(UAV_INFO_KEYS))
+        pd.DataFrame(rows).rename(columns={"env": "scenario"}).to_csv(run.out_dir / "eval.csv", index=False)
     return curve
 
 

@@ -205,3 +205,9 @@ def test_restore_best_brings_back_the_kept_checkpoint(tmp_path):
     run.restore_best()
     assert net.weight.item() == 1.0 and run.episodes == 5 and run.segment == 1
     assert load_checkpoint(tmp_path / "checkpoint.pt", task="lunarlander")["state"]["net"]["weight"].item() == 1.0
+
+
+@pytest.mark.parametrize(("task", "no_eval"), [("lunarlander", "eval.episodes=0"), ("uav", "eval.scenarios=0")])
+def test_no_evaluation_episodes_skip_the_evaluation(task, no_eval, tmp_path):
+    run_recipe(task, tmp_path, no_eval)  # the benchmarks run the recipes this way
+    assert (tmp_path / "checkpoint.pt").exists() and not (tmp_path / "eval.csv").exists()
