@@ -30,6 +30,8 @@ import importlib
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
@@ -39,10 +41,18 @@ from omegaconf import DictConfig
 from dcsc_torchrl.config import load_config
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-TASKS = {  # task: (recipe module, frames per episode to size the episode budget, the eval switch-off)
-    "lunarlander": ("pretrain_a2c_lunarlander", 110, "eval.episodes=0"),
-    "uav": ("pretrain_ddpg_uav", 120, "eval.scenarios=0"),
-}
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """One task's benchmark: our recipe and the SB3 algorithm it is compared with."""
+
+    recipe: str  # module in recipes/ (its yaml beside it)
+    frames_per_episode: int  # sizes the recipe's episode budget from --frames
+    no_eval: str  # the override that switches the recipe's final evaluation off
+    sb3: Callable[[DictConfig, int, int, int], float]  # (cfg, frames, envs, rollout) -> frames/s
+    ours_label: str
+    sb3_label: str
 
 
 def ours(task: str, frames: int, out: Path, *overrides: str) -> tuple[float, int]:
@@ -51,10 +61,11 @@ def ours(task: str, frames: int, out: Path, *overrides: str) -> tuple[float, int
     The clock includes building the envs of each checkpointed segment and writing the
     checkpoints (the final evaluation is switched off), as a user's run pays them too.
     """
-    module, frames_per_episode, no_eval = TASKS[task]
-    main = importlib.import_module(f"recipes.{module}").main
+    bench = TASKS[task]
+    main = importlib.import_module(f"recipes.{bench.recipe}").main
     start = time.perf_counter()
-    main(["--out", str(out), f"train.episodes={max(1, frames // frames_per_episode)}", no_eval, *overrides])
+    main(["--out", str(out), f"train.episodes={max(1, frames // bench.frames_per_episode)}", bench.no_eval,
+          *overrides])
     elapsed = time.perf_counter() - start
     done = int(pd.read_csv(out / "train.csv")["frames"].iloc[-1])
     return done / elapsed, done
@@ -101,6 +112,15 @@ def _learn(model, env, frames: int) -> float:
     return frames / elapsed
 
 
+TASKS = {
+    "lunarlander": Comparison("pretrain_a2c_lunarlander", 110, "eval.episodes=0", sb3_a2c,
+                              "dcsc-torchrl A2C recipe (incl. the Q critic)",
+                              "Stable-Baselines3 A2C (`render_mode=None`)"),
+    "uav": Comparison("pretrain_ddpg_uav", 120, "eval.scenarios=0", sb3_ddpg,
+                      "dcsc-torchrl DDPG recipe", "Stable-Baselines3 DDPG"),
+}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--task", choices=sorted(TASKS), default="lunarlander")
@@ -111,22 +131,22 @@ def main() -> None:
                         help="frames per env per update, both (default: the recipe's collector.rollout_length)")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    cfg = load_config(RECIPES / f"{TASKS[args.task][0]}.yaml")
+    bench = TASKS[args.task]
+    cfg = load_config(RECIPES / f"{bench.recipe}.yaml")
     num_envs = int(cfg.env.num_envs) if args.envs is None else args.envs
     rollout = int(cfg.collector.rollout_length) if args.rollout is None else args.rollout
     envs = (f"env.num_envs={num_envs}", f"collector.rollout_length={rollout}")
-    sb3, algo = (sb3_a2c, "A2C") if args.task == "lunarlander" else (sb3_ddpg, "DDPG")
     ours_fps, sb3_fps = [], []
     for _ in range(args.repeats):
         with tempfile.TemporaryDirectory() as tmp:
             fps, done = ours(args.task, args.frames, Path(tmp), *envs)
         ours_fps.append(fps)
-        sb3_fps.append(sb3(cfg, done, num_envs, rollout))
+        sb3_fps.append(bench.sb3(cfg, done, num_envs, rollout))
     ours_m, sb3_m = statistics.median(ours_fps), statistics.median(sb3_fps)
-    print(f"| {algo} pretraining ({args.task}), {num_envs} envs x {rollout} steps, median of {args.repeats} | frames/s |")
+    print(f"| {args.task} pretraining, {num_envs} envs x {rollout} steps, median of {args.repeats} | frames/s |")
     print("|---|---:|")
-    print(f"| dcsc-torchrl recipe{' (incl. the Q critic)' if algo == 'A2C' else ''} | {ours_m:,.0f} |")
-    print(f"| Stable-Baselines3 {algo}{' (`render_mode=None`)' if algo == 'A2C' else ''} | {sb3_m:,.0f} |")
+    print(f"| {bench.ours_label} | {ours_m:,.0f} |")
+    print(f"| {bench.sb3_label} | {sb3_m:,.0f} |")
     print(f"| ratio ours / SB3 | {ours_m / sb3_m:.2f} |")
 
 

@@ -80,17 +80,19 @@ class TargetLunarLanderBatch(EnvBase):
         self.reward_spec = Unbounded((*batch, 1))
         self.done_spec = Composite(done=flag(1), terminated=flag(1), truncated=flag(1), shape=batch)
 
+    def _start_episode(self, i: int, seed: int | None = None) -> None:
+        self._observation[i], _ = self._envs[i].reset(seed=seed)
+        self._elapsed[i] = 0
+
     def _set_seed(self, seed: int | None) -> None:
-        for i, env in enumerate(self._envs):
-            self._observation[i], _ = env.reset(seed=None if seed is None else seed + i)
-            self._elapsed[i] = 0
+        for i in range(len(self._envs)):
+            self._start_episode(i, None if seed is None else seed + i)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
         reset = None if tensordict is None else tensordict.get("_reset", None)
         rows = range(len(self._envs)) if reset is None else reset.reshape(len(self._envs), -1).any(-1).nonzero()
         for i in map(int, rows):
-            self._observation[i], _ = self._envs[i].reset()
-            self._elapsed[i] = 0
+            self._start_episode(i)
         false = torch.zeros((*self.batch_size, 1), dtype=torch.bool)
         return TensorDict(
             {"observation": torch.from_numpy(self._observation.copy()),
@@ -139,8 +141,8 @@ def make_lunar_env(
     ``render_mode`` stays ``None`` (docs/envs.md: flame particles pile up otherwise). ``max_steps``
     overrides the 1000-frame timeout.
     """
-    base = TargetLunarLanderBatch(num_envs, random_pad=random_pad, max_steps=max_steps)
-    return TransformedEnv(base, Compose(*(transforms or []), RewardSum(), StepCounter()))
+    return _with_episode_transforms(TargetLunarLanderBatch(num_envs, random_pad=random_pad, max_steps=max_steps),
+                                    transforms)
 
 
 def make_uav_env(
@@ -163,4 +165,9 @@ def make_uav_env(
         **({} if max_steps is None else {"horizon": max_steps}),
         **({} if collision_reward is None else {"collision_reward": collision_reward}),
     )
+    return _with_episode_transforms(base, transforms)
+
+
+def _with_episode_transforms(base: EnvBase, transforms: list[Transform] | None) -> TransformedEnv:
+    """``base`` followed by ``transforms``, then ``RewardSum`` and ``StepCounter`` (both tasks' envs)."""
     return TransformedEnv(base, Compose(*(transforms or []), RewardSum(), StepCounter()))
