@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 QUICK ?=
 
-.PHONY: install test reproduce bench lint clean
+.PHONY: install test reproduce converged bench lint clean
 
 $(VENV)/.installed: pyproject.toml
 	python3 -m venv $(VENV)
@@ -20,6 +20,18 @@ test: install
 
 reproduce: install
 	$(VENV)/bin/dcsc reproduce $(if $(QUICK),--quick,)
+
+# The LunarLander protocol with a converged machine (PPO on the paper's networks until the greedy
+# machine lands >= 90% on the standard pad: docs/pretraining.md), pretrained when missing.
+CONVERGED_LUNAR := loss.algorithm=ppo,loss.gamma=0.999,loss.gae_lambda=0.98,loss.normalize_advantage=true,\
+	env.num_envs=16,collector.rollout_length=1024,ppo.minibatch_size=64,optim.lr=3.0e-4,\
+	qcritic.updates_per_batch=1024,train.episodes=4000,train.checkpoint_every=200,train.stop_success=0.9,\
+	train.keep_best=true
+
+converged: install
+	$(VENV)/bin/dcsc sweep --out results/converged "tasks=[lunarlander]" \
+		lunarlander.pretrain.out_dir=runs/pretrain_lunarlander_converged \
+		"lunarlander.pretrain.recipe=[$(CONVERGED_LUNAR)]"
 
 bench: install
 	$(PY) -m pip install -e ".[bench]"

@@ -223,6 +223,7 @@ class TrainingRun:
         self.episodes = 0
         self.frames = 0
         self.segment = 0
+        self.finished = False  # set by finish(): the checkpoint is the run's result, even short of the budget
         self._progress: Progress | None = None
 
     # -- resume ---------------------------------------------------------------------
@@ -265,6 +266,7 @@ class TrainingRun:
             else:
                 obj.load_state_dict(data["state"][name])
         self.episodes, self.frames, self.segment = data["episodes"], data["frames"], data["segment"]
+        self.finished = False  # a resumed run trains on; finish() marks its result again
         set_rng_state(data["rng"])
 
     # -- the loop -------------------------------------------------------------------
@@ -362,11 +364,20 @@ class TrainingRun:
                 "segment": self.segment,
                 "rng": rng_state(),
                 "config": self.config,
+                "finished": self.finished,
             },
         )
 
     def finish(self, title: str) -> Path:
-        """Closes the progress bar and draws the learning curve PNG."""
+        """Marks the checkpoint as the run's result, closes the progress bar and draws the
+        learning curve PNG.
+
+        A finished checkpoint is complete even when it holds fewer episodes than the budget
+        (a landing check stopped training, or ``keep_best`` kept an earlier machine): the
+        protocol loads it as it is instead of resuming it (``--resume`` still trains on).
+        """
+        self.finished = True
+        self.save()
         if self._progress is not None:
             self._progress.close()
         return plot_learning_curve(self.log.path, self.out_dir / "learning_curve.png", title=title)

@@ -1,6 +1,8 @@
 """Pretrain the LunarLander machine: A2C + a Q critic (paper §6.1, Table A1).
 
-A2C with GAE over batched TargetLunarLander envs (pad at the centre: the standard task).
+A2C with GAE over batched TargetLunarLander envs (pad at the centre: the standard task);
+``loss.algorithm=ppo`` trains the same networks with TorchRL's clipped PPO instead (several
+epochs of minibatches per batch), the way to a converged machine (docs/pretraining.md).
 The actor is an MLP with dropout (MC dropout samples it later, Eq. 10) that sees the 8
 standard values, not the pad. Beside it a Q critic learns Q(s, a) from a replay buffer
 by the TD loss of Algorithm 1 — DC-SC's theta update needs Q; it reads all 9 values, the
@@ -30,7 +32,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorSpec
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, ValueOperator
-from torchrl.objectives import A2CLoss, SoftUpdate, ValueEstimators
+from torchrl.objectives import A2CLoss, ClipPPOLoss, SoftUpdate, ValueEstimators
 
 from dcsc_torchrl.batched_envs import make_lunar_env
 from dcsc_torchrl.config import ConfigError, to_plain
@@ -48,13 +50,16 @@ CONFIG = Path(__file__).with_suffix(".yaml")
 COLUMNS = ["episode", "frames", "return", "steps", "success",
            "loss_objective", "loss_critic", "loss_entropy", "loss_qvalue"]
 LR_SCHEDULES = ("constant", "linear")  # optim.lr_schedule: Table A1's constant lr, or linear to 0 over the budget
+ALGORITHMS = ("a2c", "ppo")  # loss.algorithm: Table A1's A2C, or clipped PPO on the same networks
 
 
 def make_a2c(cfg: DictConfig, actor_net: torch.nn.Module, value_net: torch.nn.Module,
-             action_spec: TensorSpec) -> tuple[ProbabilisticActor, A2CLoss, torch.optim.Optimizer]:
-    """The A2C part of the recipe: the sampling actor, ``A2CLoss`` with GAE, and its Adam.
+             action_spec: TensorSpec) -> tuple[ProbabilisticActor, A2CLoss | ClipPPOLoss, torch.optim.Optimizer]:
+    """The actor-critic part of the recipe: the sampling actor, its loss with GAE, and its Adam.
 
-    ``cfg.loss`` and ``cfg.optim`` are read (Table A1's values plus what it leaves open).
+    ``cfg.loss`` and ``cfg.optim`` are read (Table A1's values plus what it leaves open);
+    ``loss.algorithm`` picks ``A2CLoss`` or ``ClipPPOLoss`` (clip ``ppo.clip_epsilon``),
+    with the same entropy and value terms.
     """
     actor = ProbabilisticActor(
         TensorDictModule(actor_net, in_keys=["observation"], out_keys=["logits"]),
@@ -64,36 +69,55 @@ def make_a2c(cfg: DictConfig, actor_net: torch.nn.Module, value_net: torch.nn.Mo
         return_log_prob=True,
     )
     critic = ValueOperator(value_net, in_keys=["observation"])
-    loss = A2CLoss(actor, critic, entropy_coeff=cfg.loss.entropy_coeff, critic_coeff=cfg.loss.critic_coeff,
-                   loss_critic_type=cfg.loss.critic_loss)
+    terms = {"entropy_coeff": cfg.loss.entropy_coeff, "critic_coeff": cfg.loss.critic_coeff,
+             "loss_critic_type": cfg.loss.critic_loss}
+    if cfg.loss.algorithm == "ppo":
+        loss = ClipPPOLoss(actor, critic, clip_epsilon=cfg.ppo.clip_epsilon, **terms)
+    else:
+        loss = A2CLoss(actor, critic, **terms)
     loss.make_value_estimator(ValueEstimators.GAE, gamma=cfg.loss.gamma, lmbda=cfg.loss.gae_lambda)
     optim = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps)
     return actor, loss, optim
 
 
-def a2c_step(cfg: DictConfig, loss: A2CLoss, optim: torch.optim.Optimizer, batch: TensorDictBase) -> dict[str, float]:
-    """One A2C update on a ``[envs, time]`` batch; returns the three loss terms.
+def a2c_step(cfg: DictConfig, loss: A2CLoss | ClipPPOLoss, optim: torch.optim.Optimizer,
+             batch: TensorDictBase) -> dict[str, float]:
+    """The actor-critic update on a ``[envs, time]`` batch; returns the three loss terms
+    (A2C: of its one step; PPO: averaged over its steps).
 
-    The rewards are scaled by ``loss.reward_scale`` in ``batch`` (in place), GAE
-    advantages are computed once and, with ``loss.normalize_advantage``, standardised over
-    the batch; the gradient of the summed loss is clipped to ``optim.max_grad_norm``.
+    The rewards are scaled by ``loss.reward_scale`` in ``batch`` (in place) and GAE
+    advantages computed once. A2C takes one gradient step on the whole batch; PPO
+    (``loss.algorithm=ppo``) ``ppo.epochs`` passes over the batch in shuffled minibatches
+    of ``ppo.minibatch_size`` frames. With ``loss.normalize_advantage`` the advantages are
+    standardised over what one step sees; each step's gradient of the summed loss is
+    clipped to ``optim.max_grad_norm``.
     """
     if cfg.loss.reward_scale != 1.0:
         batch.set(("next", "reward"), batch.get(("next", "reward")) * cfg.loss.reward_scale)
     with torch.no_grad():
         loss.value_estimator(batch)  # GAE: "advantage" and "value_target"
-    if cfg.loss.normalize_advantage:
-        adv = batch.get("advantage")
-        batch.set("advantage", (adv - adv.mean()) / (adv.std() + 1e-8))
-    terms = loss(batch)
-    if "loss_entropy" not in terms.keys():  # entropy_coeff 0: TorchRL leaves the term out
-        terms.set("loss_entropy", torch.zeros(()))
-    total = terms["loss_objective"] + terms["loss_critic"] + terms["loss_entropy"]
-    optim.zero_grad()
-    total.backward()
-    torch.nn.utils.clip_grad_norm_(loss.parameters(), cfg.optim.max_grad_norm)
-    optim.step()
-    return {key: terms[key].item() for key in ("loss_objective", "loss_critic", "loss_entropy")}
+    if cfg.loss.algorithm == "ppo":
+        frames = batch.reshape(-1)
+        steps = [frames[index] for _ in range(cfg.ppo.epochs)
+                 for index in torch.randperm(frames.numel()).split(cfg.ppo.minibatch_size)]
+    else:
+        steps = [batch]
+    sums = dict.fromkeys(("loss_objective", "loss_critic", "loss_entropy"), 0.0)
+    for step in steps:
+        if cfg.loss.normalize_advantage:
+            adv = step.get("advantage")
+            step.set("advantage", (adv - adv.mean()) / (adv.std() + 1e-8))
+        terms = loss(step)
+        if "loss_entropy" not in terms.keys():  # entropy_coeff 0: TorchRL leaves the term out
+            terms.set("loss_entropy", torch.zeros(()))
+        total = terms["loss_objective"] + terms["loss_critic"] + terms["loss_entropy"]
+        optim.zero_grad()
+        total.backward()
+        torch.nn.utils.clip_grad_norm_(loss.parameters(), cfg.optim.max_grad_norm)
+        optim.step()
+        for key in sums:
+            sums[key] += terms[key].item() / len(steps)
+    return sums
 
 
 def train(cfg: DictConfig, *, resume: bool = False) -> Path:
@@ -101,6 +125,8 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     ``resume``); returns the learning curve's PNG."""
     if cfg.optim.lr_schedule not in LR_SCHEDULES:
         raise ConfigError(f"optim.lr_schedule: expected one of {', '.join(LR_SCHEDULES)}, got {cfg.optim.lr_schedule!r}")
+    if cfg.loss.algorithm not in ALGORITHMS:
+        raise ConfigError(f"loss.algorithm: expected one of {', '.join(ALGORITHMS)}, got {cfg.loss.algorithm!r}")
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
 
@@ -173,7 +199,7 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     )
     if cfg.train.keep_best:  # the result (checkpoint.pt, eval.csv) is the best check's machine
         run.restore_best()
-    curve = run.finish("A2C on TargetLunarLander (pad at the centre)")
+    curve = run.finish(f"{cfg.loss.algorithm.upper()} on TargetLunarLander (pad at the centre)")
 
     # --- machine-only evaluation: the standard pad and the moved pad (0 episodes: skip) --
     rows = []

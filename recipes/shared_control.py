@@ -90,12 +90,14 @@ def cell_settings(cfg: DictConfig) -> dict[str, Any]:
 
 
 def pretrained_machine(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -> tuple[torch.nn.Module, torch.nn.Module]:
-    """The machine actor and critic of pretraining seed ``seed``; pretrained first when missing.
+    """The machine actor and critic of pretraining seed ``seed``; pretrained first when missing
+    (by the task's recipe with the ``pretrain.recipe`` settings: e.g. a converged machine).
 
     With ``pretrain.shipped`` the machine shipped with the package (seed 0) instead.
 
-    A checkpoint short of its episodes (a pretraining that stopped halfway) is resumed to
-    the end first.
+    A checkpoint short of its episodes that its run did not finish (a pretraining killed
+    halfway) is resumed to the end first; one the run finished early (its landing check
+    stopped it, or ``train.keep_best`` kept an earlier machine) is loaded as it is.
     """
     import importlib
 
@@ -105,15 +107,16 @@ def pretrained_machine(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -
         return shipped_machine(task)
     path = checkpoint_path(cfg.pretrain.out_dir, seed)
     recipe = importlib.import_module(task.pretrain_recipe)
+    settings = [*cfg.pretrain.recipe, f"seed={seed}", f"logger.out_dir={path.parent}"]
     if not path.exists():
         print(f"{task.name}: no checkpoint at {path}, pretraining seed {seed} first", file=sys.stderr, flush=True)
-        recipe.train(load_config(recipe.CONFIG, [f"seed={seed}", f"logger.out_dir={path.parent}"], quick=quick))
+        recipe.train(load_config(recipe.CONFIG, settings, quick=quick))
     data = load_checkpoint(path, task=task.name)
     budget = data["config"].get("train", {}).get("episodes")
-    if budget is not None and data.get("episodes", budget) < budget:  # a weights-only file has no budget
+    if budget is not None and not data.get("finished", False) and data.get("episodes", budget) < budget:
+        # (a weights-only file has no budget)
         print(f"{task.name}: {path} stopped at episode {data['episodes']}, resuming", file=sys.stderr, flush=True)
-        recipe.train(load_config(recipe.CONFIG, [f"seed={seed}", f"logger.out_dir={path.parent}"], quick=quick),
-                     resume=True)
+        recipe.train(load_config(recipe.CONFIG, settings, quick=quick), resume=True)
         data = load_checkpoint(path, task=task.name)
     return machine_from_checkpoint(data, task)
 

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from dcsc_torchrl.checkpoint import load_checkpoint, save_checkpoint
-from dcsc_torchrl.config import ConfigError
+from dcsc_torchrl.config import ConfigError, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = {
@@ -121,9 +121,11 @@ def test_replay_buffer_checkpoint_keeps_only_filled_rows_and_restores_exactly(ca
     assert ("next", "reward") in restored.storage[:n].keys(True)
 
 
-def test_a_tiny_a2c_run_improves_its_return_on_a_fixed_seed():
-    """The recipe's A2C (``make_a2c`` + ``a2c_step``, its yaml's settings) on 8 CartPoles:
-    LunarLander needs minutes to show progress, CartPole shows it in ~150 updates."""
+@pytest.mark.parametrize("algorithm", ["a2c", "ppo"])
+def test_a_tiny_actor_critic_run_improves_its_return_on_a_fixed_seed(algorithm):
+    """The recipe's A2C (``make_a2c`` + ``a2c_step``, its yaml's settings), and its PPO
+    (``loss.algorithm=ppo``), on 8 CartPoles: LunarLander needs minutes to show progress,
+    CartPole shows it in ~150 updates."""
     import gymnasium as gym
     from gymnasium.vector import AutoresetMode
     from torchrl.collectors import Collector
@@ -135,7 +137,7 @@ def test_a_tiny_a2c_run_improves_its_return_on_a_fixed_seed():
     from recipes.pretrain_a2c_lunarlander import CONFIG, a2c_step, make_a2c
 
     torch.manual_seed(0)
-    cfg = load_config(CONFIG)
+    cfg = load_config(CONFIG, [f"loss.algorithm={algorithm}"])
     env = GymWrapper(gym.make_vec("CartPole-v1", num_envs=8, vectorization_mode="sync",
                                   vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP}))
     env.append_transform(RewardSum())
@@ -178,6 +180,22 @@ def test_an_unknown_lr_schedule_is_refused(tmp_path):
         run_recipe("lunarlander", tmp_path, "optim.lr_schedule=cosine")
 
 
+def test_an_unknown_algorithm_is_refused(tmp_path):
+    with pytest.raises(ConfigError, match="loss.algorithm: expected one of a2c, ppo, got 'sac'"):
+        run_recipe("lunarlander", tmp_path, "loss.algorithm=sac")
+
+
+def test_the_ppo_recipe_trains_checkpoints_and_evaluates(tmp_path):
+    run_recipe("lunarlander", tmp_path, "loss.algorithm=ppo", "ppo.minibatch_size=8")
+    assert len(pd.read_csv(tmp_path / "train.csv")) == 6
+    assert (tmp_path / "eval.csv").exists()
+    data = load_checkpoint(tmp_path / "checkpoint.pt", task="lunarlander")
+    assert data["config"]["loss"]["algorithm"] == "ppo"
+    # a batch of 2 envs x 5 frames in minibatches of 8 (8 + 2 frames) over 4 epochs: 8 Adam steps
+    adam_steps = data["state"]["optim"]["state"][0]["step"]
+    assert adam_steps == 8 * data["frames"] / 10
+
+
 def test_keep_best_makes_the_best_checks_machine_the_result(tmp_path):
     run_recipe("lunarlander", tmp_path, "train.keep_best=true", "train.stop_eval_episodes=2")
     checks = pd.read_csv(tmp_path / "stop_checks.csv")
@@ -211,3 +229,32 @@ def test_restore_best_brings_back_the_kept_checkpoint(tmp_path):
 def test_no_evaluation_episodes_skip_the_evaluation(task, no_eval, tmp_path):
     run_recipe(task, tmp_path, no_eval)  # the benchmarks run the recipes this way
     assert (tmp_path / "checkpoint.pt").exists() and not (tmp_path / "eval.csv").exists()
+
+
+def test_a_machine_kept_before_the_budget_is_loaded_by_the_protocol_not_resumed(tmp_path, capsys):
+    from dcsc_torchrl.tasks import get_task
+    from recipes.shared_control import RECIPES as PROTOCOL_CONFIGS
+    from recipes.shared_control import pretrained_machine
+
+    # a random machine never lands: both checks (episodes 3, 6) give 0%, so keep_best keeps episode 3's
+    run_recipe("lunarlander", tmp_path / "seed0", "train.keep_best=true")
+    data = load_checkpoint(tmp_path / "seed0" / "checkpoint.pt", task="lunarlander")
+    assert (data["episodes"], data["config"]["train"]["episodes"], data["finished"]) == (3, 6, True)
+    cfg = load_config(PROTOCOL_CONFIGS / "shared_control_lunarlander.yaml", [f"pretrain.out_dir={tmp_path}"],
+                      quick=True)
+    pretrained_machine(get_task("lunarlander"), cfg, 0, quick=True)
+    assert "resuming" not in capsys.readouterr().err
+    assert load_checkpoint(tmp_path / "seed0" / "checkpoint.pt", task="lunarlander")["episodes"] == 3
+    assert len(pd.read_csv(tmp_path / "seed0" / "train.csv")) == 6
+
+
+def test_the_protocol_pretrains_a_missing_machine_with_its_recipe_settings(tmp_path):
+    from dcsc_torchrl.tasks import get_task
+    from recipes.shared_control import RECIPES as PROTOCOL_CONFIGS
+    from recipes.shared_control import pretrained_machine
+
+    cfg = load_config(PROTOCOL_CONFIGS / "shared_control_lunarlander.yaml",
+                      [f"pretrain.out_dir={tmp_path}", "pretrain.recipe=[loss.algorithm=ppo,ppo.epochs=2]"], quick=True)
+    pretrained_machine(get_task("lunarlander"), cfg, 1, quick=True)
+    config = load_checkpoint(tmp_path / "seed1" / "checkpoint.pt", task="lunarlander")["config"]
+    assert (config["seed"], config["loss"]["algorithm"], config["ppo"]["epochs"]) == (1, "ppo", 2)
