@@ -53,7 +53,7 @@ LR_SCHEDULES = ("constant", "linear")  # optim.lr_schedule: Table A1's constant 
 ALGORITHMS = ("a2c", "ppo")  # loss.algorithm: Table A1's A2C, or clipped PPO on the same networks
 
 
-def make_a2c(cfg: DictConfig, actor_net: torch.nn.Module, value_net: torch.nn.Module,
+def make_actor_critic(cfg: DictConfig, actor_net: torch.nn.Module, value_net: torch.nn.Module,
              action_spec: TensorSpec) -> tuple[ProbabilisticActor, A2CLoss | ClipPPOLoss, torch.optim.Optimizer]:
     """The actor-critic part of the recipe: the sampling actor, its loss with GAE, and its Adam.
 
@@ -80,7 +80,7 @@ def make_a2c(cfg: DictConfig, actor_net: torch.nn.Module, value_net: torch.nn.Mo
     return actor, loss, optim
 
 
-def a2c_step(cfg: DictConfig, loss: A2CLoss | ClipPPOLoss, optim: torch.optim.Optimizer,
+def actor_critic_step(cfg: DictConfig, loss: A2CLoss | ClipPPOLoss, optim: torch.optim.Optimizer,
              batch: TensorDictBase) -> dict[str, float]:
     """The actor-critic update on a ``[envs, time]`` batch; returns the three loss terms
     (A2C: of its one step; PPO: averaged over its steps).
@@ -134,7 +134,7 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     actor_net = lunar_actor(cfg.network.hidden, cfg.network.actor_dropout)
     value_net = lunar_critic(cfg.network.hidden, 1)
     qvalue_net = lunar_critic(cfg.network.hidden, 4, obs_dims=LUNAR_QVALUE_DIMS)
-    actor, a2c_loss, optim = make_a2c(cfg, actor_net, value_net, make_lunar_env(1).full_action_spec["action"])
+    actor, actor_critic_loss, optim = make_actor_critic(cfg, actor_net, value_net, make_lunar_env(1).full_action_spec["action"])
     qvalue = TensorDictModule(qvalue_net, in_keys=["observation"], out_keys=["action_value"])
 
     # --- the Q critic's loss, optimiser and replay buffer -------------------------------
@@ -148,7 +148,7 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
             for group in optim.param_groups:
                 group["lr"] = cfg.optim.lr * (1.0 - run.episodes / run.total_episodes)
         buffer.extend(batch.reshape(-1).select("observation", "action", "next").clone())  # env-scale rewards
-        metrics = a2c_step(cfg, a2c_loss, optim, batch)
+        metrics = actor_critic_step(cfg, actor_critic_loss, optim, batch)
         for _ in range(cfg.qcritic.updates_per_batch):  # >= 1 (dcsc_torchrl.config.LIMITS)
             q = q_loss(buffer.sample())["loss_qvalue"]
             q_optim.zero_grad()

@@ -112,9 +112,8 @@ def pretrained_machine(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -
         print(f"{task.name}: no checkpoint at {path}, pretraining seed {seed} first", file=sys.stderr, flush=True)
         recipe.train(load_config(recipe.CONFIG, settings, quick=quick))
     data = load_checkpoint(path, task=task.name)
-    budget = data["config"].get("train", {}).get("episodes")
+    budget = data["config"].get("train", {}).get("episodes")  # a weights-only file has none
     if budget is not None and not data.get("finished", False) and data.get("episodes", budget) < budget:
-        # (a weights-only file has no budget)
         print(f"{task.name}: {path} stopped at episode {data['episodes']}, resuming", file=sys.stderr, flush=True)
         recipe.train(load_config(recipe.CONFIG, settings, quick=quick), resume=True)
         data = load_checkpoint(path, task=task.name)

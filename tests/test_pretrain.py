@@ -123,7 +123,7 @@ def test_replay_buffer_checkpoint_keeps_only_filled_rows_and_restores_exactly(ca
 
 @pytest.mark.parametrize("algorithm", ["a2c", "ppo"])
 def test_a_tiny_actor_critic_run_improves_its_return_on_a_fixed_seed(algorithm):
-    """The recipe's A2C (``make_a2c`` + ``a2c_step``, its yaml's settings), and its PPO
+    """The recipe's A2C (``make_actor_critic`` + ``actor_critic_step``, its yaml's settings), and its PPO
     (``loss.algorithm=ppo``), on 8 CartPoles: LunarLander needs minutes to show progress,
     CartPole shows it in ~150 updates."""
     import gymnasium as gym
@@ -134,7 +134,7 @@ def test_a_tiny_actor_critic_run_improves_its_return_on_a_fixed_seed(algorithm):
     from dcsc_torchrl.config import load_config
     from dcsc_torchrl.networks import lunar_actor, lunar_critic
     from dcsc_torchrl.training import finished_episodes
-    from recipes.pretrain_a2c_lunarlander import CONFIG, a2c_step, make_a2c
+    from recipes.pretrain_a2c_lunarlander import CONFIG, actor_critic_step, make_actor_critic
 
     torch.manual_seed(0)
     cfg = load_config(CONFIG, [f"loss.algorithm={algorithm}"])
@@ -144,14 +144,14 @@ def test_a_tiny_actor_critic_run_improves_its_return_on_a_fixed_seed(algorithm):
     env.append_transform(StepCounter())
     env.set_seed(0)
     hidden = list(cfg.network.hidden)
-    actor, loss, optim = make_a2c(cfg, lunar_actor(hidden, 0.0, obs_dims=4, n_actions=2),
+    actor, loss, optim = make_actor_critic(cfg, lunar_actor(hidden, 0.0, obs_dims=4, n_actions=2),
                                   lunar_critic(hidden, 1, obs_dims=4), env.full_action_spec["action"])
     collector = Collector(env, actor, frames_per_batch=40, total_frames=40 * 150,
                           auto_register_policy_transforms=False)
     returns = []
     for batch in collector:
         returns += [row["return"] for row in finished_episodes(batch)]
-        metrics = a2c_step(cfg, loss, optim, batch)
+        metrics = actor_critic_step(cfg, loss, optim, batch)
         assert all(math.isfinite(value) for value in metrics.values())
     collector.shutdown()
     first, last = sum(returns[:20]) / 20, sum(returns[-20:]) / 20
@@ -231,30 +231,29 @@ def test_no_evaluation_episodes_skip_the_evaluation(task, no_eval, tmp_path):
     assert (tmp_path / "checkpoint.pt").exists() and not (tmp_path / "eval.csv").exists()
 
 
-def test_a_machine_kept_before_the_budget_is_loaded_by_the_protocol_not_resumed(tmp_path, capsys):
+def protocol_machine(pretrain_dir: Path, seed: int, *overrides: str) -> None:
+    """The LunarLander protocol's ``pretrained_machine`` for ``seed`` of ``pretrain_dir`` (quick config)."""
     from dcsc_torchrl.tasks import get_task
     from recipes.shared_control import RECIPES as PROTOCOL_CONFIGS
     from recipes.shared_control import pretrained_machine
 
+    cfg = load_config(PROTOCOL_CONFIGS / "shared_control_lunarlander.yaml",
+                      [f"pretrain.out_dir={pretrain_dir}", *overrides], quick=True)
+    pretrained_machine(get_task("lunarlander"), cfg, seed, quick=True)
+
+
+def test_a_machine_kept_before_the_budget_is_loaded_by_the_protocol_not_resumed(tmp_path, capsys):
     # a random machine never lands: both checks (episodes 3, 6) give 0%, so keep_best keeps episode 3's
     run_recipe("lunarlander", tmp_path / "seed0", "train.keep_best=true")
     data = load_checkpoint(tmp_path / "seed0" / "checkpoint.pt", task="lunarlander")
     assert (data["episodes"], data["config"]["train"]["episodes"], data["finished"]) == (3, 6, True)
-    cfg = load_config(PROTOCOL_CONFIGS / "shared_control_lunarlander.yaml", [f"pretrain.out_dir={tmp_path}"],
-                      quick=True)
-    pretrained_machine(get_task("lunarlander"), cfg, 0, quick=True)
+    protocol_machine(tmp_path, 0)
     assert "resuming" not in capsys.readouterr().err
     assert load_checkpoint(tmp_path / "seed0" / "checkpoint.pt", task="lunarlander")["episodes"] == 3
     assert len(pd.read_csv(tmp_path / "seed0" / "train.csv")) == 6
 
 
 def test_the_protocol_pretrains_a_missing_machine_with_its_recipe_settings(tmp_path):
-    from dcsc_torchrl.tasks import get_task
-    from recipes.shared_control import RECIPES as PROTOCOL_CONFIGS
-    from recipes.shared_control import pretrained_machine
-
-    cfg = load_config(PROTOCOL_CONFIGS / "shared_control_lunarlander.yaml",
-                      [f"pretrain.out_dir={tmp_path}", "pretrain.recipe=[loss.algorithm=ppo,ppo.epochs=2]"], quick=True)
-    pretrained_machine(get_task("lunarlander"), cfg, 1, quick=True)
+    protocol_machine(tmp_path, 1, "pretrain.recipe=[loss.algorithm=ppo,ppo.epochs=2]")
     config = load_checkpoint(tmp_path / "seed1" / "checkpoint.pt", task="lunarlander")["config"]
     assert (config["seed"], config["loss"]["algorithm"], config["ppo"]["epochs"]) == (1, "ppo", 2)
