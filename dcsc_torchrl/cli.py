@@ -83,6 +83,17 @@ def _common(parser: argparse.ArgumentParser) -> None:
                         help="a traceback instead of a one-line error (also DCSC_DEBUG=1)")
 
 
+def _positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1 (the error names the value)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
+    return value
+
+
 def _overrides(parser: argparse.ArgumentParser, example: str) -> None:
     parser.add_argument("overrides", nargs="*", metavar="key=value",
                         help=f"config overrides, anywhere on the line, hydra style: {example}")
@@ -147,6 +158,9 @@ def add_reproduce_options(parser: argparse.ArgumentParser) -> argparse.ArgumentP
                         help="results root (default results/, results/quick with --quick)")
     parser.add_argument("--fresh", action="store_true",
                         help="delete the results of an earlier run of another config and start over")
+    parser.add_argument("--workers", type=_positive_int, default=2,
+                        help="pretrainings / cells at a time, as Ray tasks on a local instance (default 2, "
+                             "this project's 2-core machine); 1: one after another in this process, no Ray")
     _overrides(parser, "protocol.max_steps=200 (given to both tasks)")
     return parser
 
@@ -217,7 +231,7 @@ def _report(args: argparse.Namespace) -> Path:
 def _reproduce(args: argparse.Namespace) -> Path:
     from recipes.reproduce import reproduce
 
-    path = reproduce(args.out, quick=args.quick, overrides=args.overrides, fresh=args.fresh)
+    path = reproduce(args.out, quick=args.quick, overrides=args.overrides, fresh=args.fresh, workers=args.workers)
     _say(f"results in {path.parent}")
     return path
 

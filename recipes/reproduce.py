@@ -1,12 +1,15 @@
 """``make reproduce``: both experiments end to end, then one report (docs/architecture.md).
 
-    dcsc reproduce [--quick] [--out DIR] [--fresh] [key=value ...]
+    dcsc reproduce [--quick] [--out DIR] [--fresh] [--workers N] [key=value ...]
 
 Pretrains every machine that has no checkpoint yet (A2C and DDPG, every pretraining
 seed), runs the shared-control protocol of both tasks for every operator preset, and
 writes ``DIR/<task>/`` (CSVs, summary, figures) and ``DIR/summary.md`` gathering both tasks
 with the wall time. ``--quick`` runs the same code paths at a tiny scale into
-``results/quick``.
+``results/quick``. ``--workers N`` (default 2, this project's machine) runs N
+pretrainings or cells at a time as Ray tasks on a local instance (``dcsc sweep``'s
+executor); ``--workers 1`` runs them one after another in this process, without Ray. The
+rows are the same either way (each cell seeds its own streams).
 """
 
 from __future__ import annotations
@@ -16,11 +19,13 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import pandas as pd
+import torch
 
 from dcsc_torchrl.cli import Parser, add_reproduce_options
+from dcsc_torchrl.methods import METHOD_NAMES
 from dcsc_torchrl.report import write_task_figures, write_task_summary
 from dcsc_torchrl.tasks import TASK_NAMES
-from recipes.shared_control import run_task
+from recipes.shared_control import Executor, checked_grid, local_executor, run_grid
 
 
 def _traced_cell(task_dir: Path) -> tuple[str, int]:
@@ -48,23 +53,37 @@ def report(results: Path, wall_seconds: float | None = None) -> Path:
     return path
 
 
+def executor(workers: int) -> Executor:
+    """``workers`` cells at a time: Ray tasks on a local instance, or (1) this process in turn."""
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if workers == 1:
+        return local_executor
+    from recipes.sweep import ray_executor  # Ray loads only here
+
+    return ray_executor(retries=2, address=None, workers=workers)
+
+
 def reproduce(results: Path | None = None, *, quick: bool = False, overrides: Sequence[str] = (),
-              fresh: bool = False) -> Path:
+              fresh: bool = False, workers: int = 1) -> Path:
     """Pretraining (when missing), both protocols, the report; returns ``summary.md``.
 
     Cells finished by an earlier run of the same config are kept (``dcsc run``'s resume);
-    ``fresh`` deletes an earlier run's results first.
+    ``fresh`` deletes an earlier run's results first. ``overrides`` go to both tasks'
+    protocol configs; ``workers``: pretrainings and cells at a time (:func:`executor`).
     """
-    results = results or Path("results/quick" if quick else "results")
+    results = (results or Path("results/quick" if quick else "results")).resolve()  # Ray tasks' cwd may differ
+    run = executor(workers)
+    grids = [checked_grid(task, quick=quick, overrides=overrides) for task in TASK_NAMES]
     start = time.perf_counter()
-    for task in TASK_NAMES:
-        run_task(task, out=results, quick=quick, overrides=overrides, fresh=fresh)
+    torch.set_num_threads(grids[0].cfg.threads)
+    run_grid(results, grids, METHOD_NAMES, run, quick=quick, fresh=fresh)
     return report(results, time.perf_counter() - start)
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
     args = add_reproduce_options(Parser(description=__doc__.split("\n\n")[0])).parse_args(argv)
-    return reproduce(args.out, quick=args.quick, overrides=args.overrides, fresh=args.fresh)
+    return reproduce(args.out, quick=args.quick, overrides=args.overrides, fresh=args.fresh, workers=args.workers)
 
 
 if __name__ == "__main__":

@@ -360,6 +360,25 @@ def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], exe
     return GridResult(out, ran, [cell for cell in cells if cell not in todo], failed)
 
 
+def checked_grid(task_name: str, *, quick: bool = False, overrides: Sequence[str] = (),
+                 operators: Sequence[str] | None = None) -> TaskGrid:
+    """The cells of ``task_name`` (every operator preset, or ``operators``, x every pretraining seed).
+
+    Everything named (config keys, operator presets, the checkpoints there are) is checked
+    here, before any cell runs: a typo or a broken checkpoint is answered at once.
+    """
+    task = get_task(task_name)
+    cfg = task_config(task, overrides, quick=quick)
+    presets = check_names("operator preset", list(operators or cfg.operator.presets), list(PRESETS))
+    if cfg.pretrain.shipped and list(cfg.pretrain.seeds) != [0]:
+        raise ConfigError(f"pretrain.shipped=true: only pretraining seed 0 ships, but pretrain.seeds is "
+                          f"{list(cfg.pretrain.seeds)}: add pretrain.seeds=[0]")
+    for seed in cfg.pretrain.seeds:
+        if not cfg.pretrain.shipped and checkpoint_path(cfg.pretrain.out_dir, seed).exists():
+            load_checkpoint(checkpoint_path(cfg.pretrain.out_dir, seed), task=task.name)  # a broken one: refused now
+    return make_grid(task.name, cfg, presets, list(cfg.pretrain.seeds))
+
+
 def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False, overrides: Sequence[str] = (),
              methods: Sequence[str] | None = None, operators: Sequence[str] | None = None,
              fresh: bool = False) -> Path:
@@ -369,21 +388,11 @@ def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False
     Everything named (config keys, methods, operator presets, the results folder's
     earlier config, the checkpoints there are) is checked before a machine is loaded or pretrained.
     """
-    task = get_task(task_name)
-    cfg = task_config(task, overrides, quick=quick)
     methods = tuple(check_names("method", methods or METHOD_NAMES, METHOD_NAMES))
-    presets = check_names("operator preset", list(operators or cfg.operator.presets), list(PRESETS))
-    if cfg.pretrain.shipped and list(cfg.pretrain.seeds) != [0]:
-        raise ConfigError(f"pretrain.shipped=true: only pretraining seed 0 ships, but pretrain.seeds is "
-                          f"{list(cfg.pretrain.seeds)}: add pretrain.seeds=[0]")
-    grid = make_grid(task.name, cfg, presets, list(cfg.pretrain.seeds))
-    out = Path(out)
-    for seed in dict.fromkeys(cell.pretrain_seed for cell in grid.cells if not cell.done(out)):
-        if not cfg.pretrain.shipped and checkpoint_path(cfg.pretrain.out_dir, seed).exists():
-            load_checkpoint(checkpoint_path(cfg.pretrain.out_dir, seed), task=task.name)  # a broken one: refused now
-    torch.set_num_threads(cfg.threads)
-    run_grid(out, [grid], methods, local_executor, quick=quick, fresh=fresh)
-    task_dir = out / task.name
+    grid = checked_grid(task_name, quick=quick, overrides=overrides, operators=operators)
+    torch.set_num_threads(grid.cfg.threads)
+    run_grid(Path(out), [grid], methods, local_executor, quick=quick, fresh=fresh)
+    task_dir = Path(out) / grid.task
     print(f"results in {task_dir}", file=sys.stderr, flush=True)
     return task_dir
 

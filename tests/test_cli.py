@@ -158,6 +158,7 @@ def test_run_help_names_every_method_it_accepts(capsys):
         (["run", "lunarlander", "--methods", "nothing"], ["unknown method 'nothing'"]),
         (["sweep", "lunarlander.protocol.group_size=0"], ["protocol.group_size", ">= 1"]),
         (["sweep", "ray.workerz=2"], ["unknown key ray.workerz", "did you mean ray.workers?"]),
+        (["reproduce", "--workers", "0"], ["--workers", "expected an integer >= 1, got 0"]),
         (["report", "a.b=1"], ["takes no key=value overrides"]),
     ],
 )

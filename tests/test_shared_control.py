@@ -30,7 +30,7 @@ def quick_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("reproduce")
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(root)
-        summary = reproduce(quick=True)
+        summary = reproduce(quick=True, workers=2)  # as `make reproduce QUICK=1`: 2 Ray workers
     return root, summary
 
 
