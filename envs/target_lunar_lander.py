@@ -334,8 +334,8 @@ def _info(
     }
 
 
-def target_heuristic(obs: np.ndarray) -> int:
-    """Hand-written pilot that lands on the pad at ``obs[8]`` (discrete actions).
+def target_heuristic(obs: np.ndarray) -> int | np.ndarray:
+    """Hand-written pilot that lands on the pad at ``obs[..., 8]`` (discrete actions).
 
     Gymnasium's ``heuristic`` steered to x = ``obs[8]`` instead of 0: tilt toward the
     pad and against the drift, hover at a height that shrinks as the lander closes in,
@@ -346,23 +346,29 @@ def target_heuristic(obs: np.ndarray) -> int:
     ``dcsc/TargetLunarLander-v0`` it lands on the pad in 99% of the episodes.
 
     Args:
-        obs: a TargetLunarLander observation (9 values; ``obs[8]`` is the pad's x).
+        obs: a TargetLunarLander observation (9 values; ``obs[8]`` is the pad's x), or a
+            batch of them ``[..., 9]``.
 
     Returns:
-        The action: 0 no-op, 1 left engine, 2 main engine, 3 right engine.
+        The action: 0 no-op, 1 left engine, 2 main engine, 3 right engine; an ``int``
+        for one observation, an int64 array of the batch's shape for a batch.
     """
-    dx = float(obs[0] - obs[8])
-    angle_targ = float(np.clip(dx * 0.5 + obs[2] * 1.0, -0.4, 0.4))
-    hover_targ = 0.55 * abs(dx) + (_APPROACH_HEIGHT if abs(dx) > _ABOVE_PAD else 0.0)
-    angle_todo = (angle_targ - obs[4]) * 0.5 - obs[5] * 1.0
-    hover_todo = (hover_targ - obs[1]) * 0.5 - obs[3] * 0.5
-    if obs[6] or obs[7]:
-        angle_todo = 0.0
-        hover_todo = -obs[3] * 0.5
-    if hover_todo > abs(angle_todo) and hover_todo > 0.05:
-        return 2
-    if angle_todo < -0.05:
-        return 3
-    if angle_todo > 0.05:
-        return 1
-    return 0
+    obs = np.asarray(obs, dtype=np.float64)
+    dx = obs[..., 0] - obs[..., 8]
+    angle_targ = np.clip(dx * 0.5 + obs[..., 2] * 1.0, -0.4, 0.4)
+    hover_targ = 0.55 * np.abs(dx) + np.where(np.abs(dx) > _ABOVE_PAD, _APPROACH_HEIGHT, 0.0)
+    angle_todo = (angle_targ - obs[..., 4]) * 0.5 - obs[..., 5] * 1.0
+    hover_todo = (hover_targ - obs[..., 1]) * 0.5 - obs[..., 3] * 0.5
+    touching = (obs[..., 6] != 0) | (obs[..., 7] != 0)
+    angle_todo = np.where(touching, 0.0, angle_todo)
+    hover_todo = np.where(touching, -obs[..., 3] * 0.5, hover_todo)
+    action = np.select(
+        [
+            (hover_todo > np.abs(angle_todo)) & (hover_todo > 0.05),
+            angle_todo < -0.05,
+            angle_todo > 0.05,
+        ],
+        [2, 3, 1],
+        default=0,
+    ).astype(np.int64)
+    return int(action) if action.ndim == 0 else action

@@ -254,3 +254,13 @@ def test_batched_env_passes_check_env_specs_and_refuses_bad_sizes():
         TargetLunarLanderBatch(0)
     with pytest.raises(ValueError, match="max_steps must be >= 1, got 0"):
         TargetLunarLanderBatch(1, max_steps=0)
+
+
+def test_target_heuristic_on_a_batch_is_the_heuristic_row_by_row():
+    rng = np.random.default_rng(0)
+    obs = rng.normal(0.0, 0.5, (2000, 9)).astype(np.float32)
+    obs[:, 6:8] = rng.random((2000, 2)) < 0.1
+    batch = target_heuristic(obs)
+    assert batch.shape == (2000,) and batch.dtype == np.int64
+    assert batch.tolist() == [target_heuristic(row) for row in obs]
+    assert set(batch.tolist()) == {0, 1, 2, 3}

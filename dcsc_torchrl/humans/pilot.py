@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from gymnasium.envs.box2d.lunar_lander import FPS
 from tensordict import TensorDictBase
@@ -21,6 +22,86 @@ per second in gymnasium's LunarLander units (x: ``vx (W/2) / FPS`` against ``x /
 with W/2 = 10 m gives 50 / 10 / 10 = 0.5; y: 50 / 6.67 / 6.67 = 1.125; the angle: the
 angular velocity is reported as ``20 omega / FPS``, so 50 / 20 = 2.5)."""
 
+VELOCITIES = [2, 3, 5]
+"""The observation's velocities (vx, vy, angular) that a key changes."""
+
+INTERNAL_MODEL = np.array(
+    [
+        [[-0.000048, -0.026530, -0.002521], [0.000059, -0.000021, -0.001191], [0.000043, -0.000072, 0.002419]],
+        [[-0.000556, -0.026015, 0.055948], [0.000417, -0.007029, -0.003824], [-0.009375, -0.000453, -0.016680]],
+        [[-0.000920, -0.026200, 0.003892], [-0.070050, -0.001059, -0.001166], [0.001049, 0.046149, -0.004048]],
+        [[-0.000423, -0.024846, -0.034024], [0.000438, 0.005180, -0.009415], [0.010293, -0.001727, -0.005563]],
+    ]
+)
+"""The pilot's internal model of the lander, ``[key, feature, velocity]``: one frame's change
+of (vx, vy, angular velocity) in observation units is ``[1, sin(angle), cos(angle)] @
+INTERNAL_MODEL[key]`` in flight (gravity, and each engine's push along or across the
+lander's axis). Least squares over 20,000 flying frames (:func:`fit_internal_model` with
+its defaults; ``tests/test_operators.py`` refits and compares): what a practised person
+knows of the engines, not the simulator (no engine dispersion, leg springs or terrain)."""
+
+
+def fit_internal_model(frames: int = 20_000, seed: int = 1_000_000) -> np.ndarray:
+    """Fits :data:`INTERNAL_MODEL` from frames of ``dcsc/TargetLunarLander-v0`` in flight.
+
+    The frames come from a pilot that presses a uniformly random key or
+    :func:`~envs.target_lunar_lander.target_heuristic`'s, half and half (so the states
+    are those of flying towards a pad), on episodes seeded ``seed, seed + 1, ...``
+    (far from the validation scenarios); frames with a leg down are left out.
+
+    Returns:
+        ``[4, 3, 3]``: per key, the least-squares map from ``[1, sin(angle), cos(angle)]``
+        to one frame's change of (vx, vy, angular velocity).
+    """
+    import gymnasium as gym
+
+    import envs  # noqa: F401  (registers the id)
+
+    env = gym.make("dcsc/TargetLunarLander-v0")
+    rng = np.random.default_rng(seed)
+    features: list[list[np.ndarray]] = [[] for _ in range(N_KEYS)]
+    changes: list[list[np.ndarray]] = [[] for _ in range(N_KEYS)]
+    episode, kept = 0, 0
+    obs, _ = env.reset(seed=seed)
+    while kept < frames:
+        key = int(rng.integers(N_KEYS)) if rng.random() < 0.5 else target_heuristic(obs)
+        next_obs, _, terminated, truncated, _ = env.step(key)
+        if not (obs[6] or obs[7] or next_obs[6] or next_obs[7] or terminated):
+            features[key].append(_features(obs))
+            changes[key].append(next_obs[VELOCITIES] - obs[VELOCITIES])
+            kept += 1
+        obs = next_obs
+        if terminated or truncated:
+            episode += 1
+            obs, _ = env.reset(seed=seed + episode)
+    return np.stack(
+        [np.linalg.lstsq(np.array(x, np.float64), np.array(y, np.float64), rcond=None)[0] for x, y in zip(features, changes, strict=True)]
+    )
+
+
+def _features(obs: np.ndarray) -> np.ndarray:
+    angle = obs[..., 4]
+    return np.stack([np.ones_like(angle), np.sin(angle), np.cos(angle)], -1)
+
+
+def predict_frame(obs: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """The internal model's next frame for observations ``[N, 9]`` under keys ``[N]``.
+
+    Positions move at the velocities seen (:data:`OBSERVATION_RATES`), the velocities
+    change as :data:`INTERNAL_MODEL` says, and the lander stops at the pad's height
+    (``y = 0``): below it the model puts it on its legs (``y = 0``, no downward speed,
+    both leg flags set), as a person knows the ground stops a fall.
+    """
+    nxt = obs.copy()
+    for position, velocity, rate in OBSERVATION_RATES:
+        nxt[:, position] += rate * obs[:, velocity] / FPS
+    nxt[:, VELOCITIES] += np.einsum("nf,nfv->nv", _features(obs), INTERNAL_MODEL[keys])
+    down = nxt[:, 1] <= 0.0
+    nxt[down, 1] = 0.0
+    nxt[down, 3] = np.maximum(nxt[down, 3], 0.0)
+    nxt[down, 6:8] = 1.0
+    return nxt
+
 
 class SimulatedPilot(SimulatedHuman):
     """The paper's LunarLander operator (§6.1: "the human has accurate knowledge of the landing target").
@@ -31,6 +112,15 @@ class SimulatedPilot(SimulatedHuman):
     run by :class:`~dcsc_torchrl.humans.traits.SimulatedHuman`. The workload that
     stretches its RT is the lander's speed plus its tilt,
     ``hypot(obs[2], obs[3]) + |obs[4]|`` (normalised units and radians).
+
+    A pilot that acts on the past (``traits.perceive_delayed``) flies by intermittent
+    predictive control (Gawthrop, Loram, Lakie and Gollee, 2011): at a decision it
+    carries the frame it saw one RT ago to the present through its internal model
+    (:func:`predict_frame`) with the keys it pressed since (:meth:`anticipate`, a Smith
+    predictor), then plans the keys of the coming decision interval by running the
+    controller on the model's frames, and presses them open-loop until it decides again.
+    The ``scripted`` upper bound (undelayed) runs the controller on the current frame and
+    holds that key for its two frames.
 
     Args:
         traits: the pilot's traits (default: the ``expert`` preset).
@@ -57,18 +147,30 @@ class SimulatedPilot(SimulatedHuman):
         self.in_keys = (observation_key,)
 
     def plan(self, tensordict: TensorDictBase) -> torch.Tensor:
-        observations = tensordict.get(self.observation_key).detach().cpu().numpy()
-        keys = [target_heuristic(obs) for obs in observations]
-        return torch.tensor(keys, dtype=torch.int64, device=tensordict.device)
+        obs = tensordict.get(self.observation_key).detach().cpu().numpy().astype(np.float64)
+        if not self.traits.perceive_delayed:
+            return torch.as_tensor(target_heuristic(obs), device=tensordict.device)
+        keys = np.empty((obs.shape[0], self.decision_period), dtype=np.int64)
+        for frame in range(self.decision_period):
+            keys[:, frame] = target_heuristic(obs)
+            obs = predict_frame(obs, keys[:, frame])
+        return torch.as_tensor(keys, device=tensordict.device)
 
-    def anticipate(self, perceived: TensorDictBase, delay: torch.Tensor) -> TensorDictBase:
-        """A constant-velocity guess of the present: the lander's x, y and tilt carried
-        forward ``delay`` seconds at the velocities seen (:data:`OBSERVATION_RATES`);
-        the velocities themselves (and gravity, thrust) are not predicted."""
-        obs = perceived.get(self.observation_key).clone()
-        for position, velocity, rate in OBSERVATION_RATES:
-            obs[..., position] += rate * obs[..., velocity] * delay.to(obs.dtype)
-        return perceived.clone(False).set(self.observation_key, obs)
+    def anticipate(
+        self, perceived: TensorDictBase, issued: torch.Tensor, delay: torch.Tensor
+    ) -> TensorDictBase:
+        """The present as the internal model predicts it: the frame seen ``delay`` frames
+        ago stepped through :func:`predict_frame` with the keys the pilot pressed since
+        (its own keys: in shared control the key applied may differ, and the model does
+        not know it)."""
+        obs = perceived.get(self.observation_key)
+        guess = obs.detach().cpu().numpy().astype(np.float64)
+        issued, delay = issued.cpu().numpy(), delay.cpu().numpy()
+        for frame in range(int(delay.max(initial=0))):
+            moving = frame < delay
+            guess[moving] = predict_frame(guess[moving], issued[moving, frame])
+        guess = torch.as_tensor(guess, dtype=obs.dtype, device=obs.device)
+        return perceived.clone(False).set(self.observation_key, guess)
 
     def workload(self, tensordict: TensorDictBase) -> torch.Tensor:
         obs = tensordict.get(self.observation_key)

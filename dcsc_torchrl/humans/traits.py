@@ -7,7 +7,8 @@ future positions) wrapped in the traits of a person:
   key between decisions (a person changes keys a few times a second, not at 50 Hz);
 - a perception delay: at a decision it acts on what it saw one reaction time ago, i.e. on
   the env's keys of ``round(RT / frame)`` frames before (``perceive_delayed``; an explicit
-  upper-bound preset, ``scripted``, acts on the current frame);
+  upper-bound preset, ``scripted``, acts on the current frame), carried to the present by
+  its internal model and the keys it pressed since (an efference copy);
 - noise: at a decision it picks a random choice with probability ``eps``;
 - lag: at a decision it repeats its previous choice with probability ``lag``;
 - a reaction time (RT) per decision, drawn from an ex-Gaussian whose mean grows with the
@@ -206,12 +207,15 @@ class SimulatedHuman(ABC):
     starts (``is_init``) drops its held choice and decides now; otherwise it decides
     when its decision interval (plus any lapse) has passed. At a decision it draws an RT
     (:func:`ex_gaussian_rt`, workload of the current frame from :meth:`workload`); then,
-    with probability ``lag`` it repeats its previous choice, else with probability
-    ``eps`` it picks a random one, else it takes its controller's (:meth:`plan`) on what
-    it perceived: the env's ``in_keys`` of ``round(RT / frame_seconds)`` frames before
-    (when ``traits.perceive_delayed``; never before the episode's first frame, at most
-    :data:`MAX_PERCEPTION_DELAY` seconds). Between decisions it holds its choice and
-    reports the last decision's RT with ``human_decided`` False.
+    with probability ``lag`` it keeps pressing what it pressed last, else with
+    probability ``eps`` it picks a random choice, else it takes its controller's
+    (:meth:`plan`) on what it perceived: the env's ``in_keys`` of
+    ``round(RT / frame_seconds)`` frames before (when ``traits.perceive_delayed``; never
+    before the episode's first frame, at most :data:`MAX_PERCEPTION_DELAY` seconds),
+    carried to the present by :meth:`anticipate` with the choices it made on the frames
+    since. A plan is one choice held until the next decision, or one choice per frame of
+    the coming interval (an open-loop key sequence; a lapse holds its last key). Between
+    decisions ``human_decided`` is False and the last decision's RT is reported.
 
     Every random number comes from :class:`EnvStreams`, so an env behaves the same in
     any batch. Subclasses say what a choice is (``n_choices``, :meth:`action`), how the
@@ -274,7 +278,8 @@ class SimulatedHuman(ABC):
 
     @abstractmethod
     def plan(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """The controller's choice for each env of a flat batch: ``[N]`` int64 in ``[0, n_choices)``."""
+        """The controller's choices for each env of a flat batch, int64 in ``[0, n_choices)``:
+        ``[N]`` (held until the next decision) or ``[N, decision_period]`` (one per frame)."""
 
     @abstractmethod
     def workload(self, tensordict: TensorDictBase) -> torch.Tensor:
@@ -296,6 +301,9 @@ class SimulatedHuman(ABC):
         return TensorDict(
             {
                 "choice": torch.zeros(n_envs, dtype=torch.int64),
+                "plan": torch.zeros(n_envs, self.decision_period, dtype=torch.int64),
+                "since": torch.zeros(n_envs, dtype=torch.int64),
+                "issued": torch.zeros(n_envs, self.memory_frames, dtype=torch.int64),
                 "rt": torch.zeros(n_envs),
                 "wait": torch.zeros(n_envs, dtype=torch.int64),
                 "age": torch.zeros(n_envs, dtype=torch.int64),
@@ -318,15 +326,27 @@ class SimulatedHuman(ABC):
         delay = torch.round(rt / self.frame_seconds).long()
         delay = torch.minimum(delay.clamp_max(self.memory_frames - 1), state["age"][rows])
         slots = (self._slot - delay) % self.memory_frames
-        return self.anticipate(state["seen"][rows, slots], delay.to(torch.float32) * self.frame_seconds)
+        since = torch.arange(self.memory_frames - 1, device=delay.device)
+        issued_slots = (slots.unsqueeze(-1) + since) % self.memory_frames
+        issued = state["issued"][rows.unsqueeze(-1), issued_slots]
+        return self.anticipate(state["seen"][rows, slots], issued, delay)
 
-    def anticipate(self, perceived: TensorDictBase, delay: torch.Tensor) -> TensorDictBase:
-        """The person's guess of the present from a frame seen ``delay`` seconds ago (``[N]``).
+    def anticipate(
+        self, perceived: TensorDictBase, issued: torch.Tensor, delay: torch.Tensor
+    ) -> TensorDictBase:
+        """The person's guess of the present from a frame seen ``delay`` frames ago.
 
-        People compensate part of their own delay with an internal model of what they
-        steer (Miall, Weir, Wolpert and Stein, 1993). The default guesses nothing: the
-        stale frame is taken for the present. Operators override it with their task's
-        forward model.
+        People compensate their own delay with an internal model of what they steer,
+        fed with a copy of the commands they sent since (the Smith predictor of Miall,
+        Weir, Wolpert and Stein, 1993). The default guesses nothing: the stale frame is
+        taken for the present. Operators override it with their task's forward model.
+
+        Args:
+            perceived: the frame seen, batch ``[N]``.
+            issued: ``[N, memory_frames - 1]`` int64, the operator's own choices on the
+                frames since, oldest first: ``issued[i, j]`` for ``j < delay[i]`` (the
+                rest is padding).
+            delay: ``[N]`` int64, frames between the perceived frame and the present.
         """
         return perceived
 
@@ -360,21 +380,29 @@ class SimulatedHuman(ABC):
 
         wait = torch.where(restart, 0, state["wait"])
         decide = wait <= 0
-        choice = state["choice"].clone()
         if decide.any():
             rows = decide.nonzero().squeeze(-1)
             u_rows = u[rows]
+            period = self.decision_period
             rt = ex_gaussian_rt(self.traits, self.workload(frame[rows]), u_rows[:, 3:])
             random_choice = (u_rows[:, 2] * self.n_choices).long().clamp_max(self.n_choices - 1)
             planned = self.plan(self._perceived(rows, rt))
-            new = torch.where(u_rows[:, 1] < self.traits.eps, random_choice, planned)
+            if planned.dim() == 1:
+                planned = planned.unsqueeze(-1).expand(-1, period)
+            new = torch.where((u_rows[:, 1] < self.traits.eps).unsqueeze(-1), random_choice.unsqueeze(-1), planned)
             lagged = (u_rows[:, 0] < self.traits.lag) & ~restart[rows]
-            choice[rows] = torch.where(lagged, choice[rows], new)
+            held = state["choice"][rows].unsqueeze(-1).expand(-1, period)
+            state["plan"][rows] = torch.where(lagged.unsqueeze(-1), held, new)
+            state["since"][rows] = 0
             state["rt"][rows] = rt
             excess = (rt - self.traits.lapse_threshold).clamp_min(0.0)
             lapse = torch.round(excess / self.frame_seconds).long()
-            wait[rows] = self.decision_period + lapse
+            wait[rows] = period + lapse
+        step = state["since"].clamp_max(self.decision_period - 1).unsqueeze(-1)
+        choice = state["plan"].gather(-1, step).squeeze(-1)
         state["choice"] = choice
+        state["issued"][:, self._slot] = choice
+        state["since"] = state["since"] + 1
         state["wait"] = wait - 1
 
         return TensorDict(
