@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium.envs.box2d.lunar_lander import FPS
@@ -53,10 +54,6 @@ def fit_internal_model(frames: int = 20_000, seed: int = 1_000_000) -> np.ndarra
         ``[4, 3, 3]``: per key, the least-squares map from ``[1, sin(angle), cos(angle)]``
         to one frame's change of (vx, vy, angular velocity).
     """
-    import gymnasium as gym
-
-    import envs  # noqa: F401  (registers the id)
-
     env = gym.make("dcsc/TargetLunarLander-v0")
     rng = np.random.default_rng(seed)
     features: list[list[np.ndarray]] = [[] for _ in range(N_KEYS)]

@@ -326,7 +326,7 @@ class SimulatedHuman(ABC):
         delay = torch.round(rt / self.frame_seconds).long()
         delay = torch.minimum(delay.clamp_max(self.memory_frames - 1), state["age"][rows])
         slots = (self._slot - delay) % self.memory_frames
-        since = torch.arange(self.memory_frames - 1, device=delay.device)
+        since = torch.arange(int(delay.max()), device=delay.device)
         issued_slots = (slots.unsqueeze(-1) + since) % self.memory_frames
         issued = state["issued"][rows.unsqueeze(-1), issued_slots]
         return self.anticipate(state["seen"][rows, slots], issued, delay)
@@ -343,9 +343,9 @@ class SimulatedHuman(ABC):
 
         Args:
             perceived: the frame seen, batch ``[N]``.
-            issued: ``[N, memory_frames - 1]`` int64, the operator's own choices on the
-                frames since, oldest first: ``issued[i, j]`` for ``j < delay[i]`` (the
-                rest is padding).
+            issued: ``[N, max(delay)]`` int64, the operator's own choices on the frames
+                since, oldest first: ``issued[i, j]`` for ``j < delay[i]`` (the rest is
+                padding).
             delay: ``[N]`` int64, frames between the perceived frame and the present.
         """
         return perceived
