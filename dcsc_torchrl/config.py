@@ -65,6 +65,7 @@ LIMITS: dict[str, tuple[float, bool]] = {
     "warmup.batch_size": (1, False),
     "warmup.lr": (0, True),
     "scenarios.machine_alone_runs": (0, False),
+    "scenarios.blend_runs": (0, False),
     "scenarios.first_validation_seed": (0, False),
     "arbiter.centred.gain": (0, True),
     "protocol.rollout_length": (1, False),

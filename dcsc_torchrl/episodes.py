@@ -146,3 +146,19 @@ def run_scenarios(
             break
     collector.shutdown()
     return EpisodeBatch(rows, trace_rows(torch.cat(traced), task) if traced else [], torch.cat(frames))
+
+
+def concat_runs(*frames: TensorDictBase) -> TensorDictBase:
+    """The frames of several runs (:attr:`EpisodeBatch.frames`) as one, each episode its own ``env_index``.
+
+    Every run numbers its envs from 0, so run ``k``'s envs are shifted past those of the
+    runs before it: :func:`dcsc_torchrl.online.returns_to_go` then never chains two runs'
+    episodes into one.
+    """
+    parts, offset = [], 0
+    for run in frames:
+        run = run.clone(False)
+        run["env_index"] = run["env_index"] + offset
+        offset = int(run["env_index"].max()) + 1 if run.numel() else offset
+        parts.append(run)
+    return torch.cat(parts)

@@ -176,3 +176,81 @@ class ThetaLoss(QCriticLoss):
         loss_q, metadata = self.loss_qvalue(tensordict)
         loss_theta, metadata_theta = self.loss_theta(tensordict)
         return TensorDict({"loss_theta": loss_theta, "loss_qvalue": loss_q, **metadata, **metadata_theta}, batch_size=[])
+
+
+class AuthorityThetaLoss(LossModule):
+    """The theta update of Eq. 19 through a critic of the authority, ``Q(s, beta)`` (both action kinds).
+
+    Eq. 19 is the chain rule ``dJ/dtheta = dbeta/dtheta . dJ/dbeta``; Algorithm 1 takes
+    ``dJ/dbeta`` one frame at a time from a critic of the *key* or *action*,
+    ``(pi_m - pi_h) . Q(s, .)``. Here ``dJ/dbeta`` comes from a critic of the *authority
+    split* itself: ``Q(s, beta)`` is the return that follows ``s`` when the machine holds
+    ``beta`` of the authority from there on, fitted on recorded returns of runs at known
+    betas (the operator alone at 0, the machine alone at 1; docs/math.md §6b).
+    ``loss_theta = -Q(s, beta_theta(s))`` averaged over the batch, the critic held, so
+    ``-dloss/dtheta = dbeta/dtheta . dQ/dbeta``: DDPG's actor gradient with the arbiter
+    as the actor and beta as its action.
+
+    Args:
+        arbiter: the learned arbiter (holds theta); it reads the batch's stored confidences.
+        authority_network: ``(observation, beta) -> state_value``
+            (:func:`dcsc_torchrl.networks.authority_critic`).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> from dcsc_torchrl.arbiters import CentredConfidenceArbiter
+        >>> from dcsc_torchrl.networks import authority_critic
+        >>> critic = TensorDictModule(authority_critic(9, 1, [8]), ["observation", "beta"], ["state_value"])
+        >>> loss = AuthorityThetaLoss(CentredConfidenceArbiter(), critic)
+        >>> batch = TensorDict({"observation": torch.randn(3, 9), "machine_confidence": torch.rand(3, 1),
+        ...                     "human_confidence": torch.rand(3, 1)}, [3])
+        >>> sorted(loss(batch).keys())
+        ['beta', 'loss_theta']
+    """
+
+    out_keys = ["loss_theta", "beta"]
+
+    authority_network: TensorDictModule
+    authority_network_params: TensorDictParams
+    target_authority_network_params: None
+
+    def __init__(self, arbiter: TensorDictModule, authority_network: TensorDictModule) -> None:
+        super().__init__()
+        self.arbiter = arbiter
+        self.convert_to_functional(authority_network, "authority_network", create_target_params=False)
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        return sorted({self.authority_network.in_keys[0], *self.arbiter.in_keys}, key=str)
+
+    def authority_value(self, tensordict: TensorDictBase, beta: torch.Tensor | None = None) -> torch.Tensor:
+        """``Q(s, beta)`` per frame ``[N]``: at the batch's stored ``beta``, or at ``beta`` given."""
+        obs_key, beta_key = self.authority_network.in_keys
+        td = tensordict.select(obs_key, *([] if beta is not None else [beta_key]), strict=True).copy()
+        if beta is not None:
+            td.set(beta_key, beta)
+        with self.authority_network_params.to_module(self.authority_network):
+            self.authority_network(td)
+        return td.get(self.authority_network.out_keys[0]).reshape(-1)
+
+    def loss_theta(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """``-Q(s, beta_theta(s))`` with the critic held (gradient = -Eq. 19 through ``Q(s, beta)``)."""
+        td = self.arbiter(tensordict.select(*self.arbiter.in_keys, strict=False).copy())
+        beta = td.get(self.arbiter.out_keys[1])
+        obs_key = self.authority_network.in_keys[0]
+        frame = tensordict.select(obs_key).copy()
+        frame.set(self.authority_network.in_keys[1], beta)
+        with self.authority_network_params.detach().to_module(self.authority_network):
+            self.authority_network(frame)
+        loss = -frame.get(self.authority_network.out_keys[0]).mean()
+        return loss, {"beta": beta.detach().mean()}
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        loss, metadata = self.loss_theta(tensordict)
+        return TensorDict({"loss_theta": loss, **metadata}, batch_size=[])

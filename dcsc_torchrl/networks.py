@@ -109,6 +109,38 @@ def uav_critic(hidden: Sequence[int]) -> ConcatInputs:
     return ConcatInputs(mlp(12, 1, hidden, activation=nn.ReLU))
 
 
+class SeparableAuthorityValue(nn.Module):
+    """``Q(s, beta) = V(s) + A(beta)``: a state's value plus a value of the authority split alone.
+
+    ``A`` does not read the state, so the slope ``dQ/dbeta`` that theta follows is the same
+    on every frame: it is learned where the calibration runs put the two partners on the
+    same states (their shared starts), not extrapolated to states only one of them visited.
+    """
+
+    def __init__(self, state: nn.Module, authority: nn.Module) -> None:
+        super().__init__()
+        self.state = state
+        self.authority = authority
+
+    def forward(self, observation: torch.Tensor, beta: torch.Tensor) -> torch.Tensor:
+        return self.state(observation) + self.authority(beta)
+
+
+def authority_critic(obs_dims: int, beta_dims: int, hidden: Sequence[int] = (64, 64), *,
+                     separable: bool = True) -> nn.Module:
+    """The authority critic ``Q(s, beta)`` behind theta's update (docs/math.md §6b): the whole
+    observation (the LunarLander pad included) and the machine's share of authority -> one value.
+
+    ``separable``: :class:`SeparableAuthorityValue`, ``V(s) + A(beta)`` (two MLPs of
+    ``hidden``); otherwise one MLP on the concatenated ``(s, beta)``. Built fresh in every
+    cell and fitted on the calibration runs' returns
+    (:meth:`dcsc_torchrl.online.OnlineLearner.warm_up`); nothing pretrained feeds it.
+    """
+    if separable:
+        return SeparableAuthorityValue(mlp(obs_dims, 1, hidden), mlp(beta_dims, 1, hidden))
+    return ConcatInputs(mlp(obs_dims + beta_dims, 1, hidden))
+
+
 def machine_from_checkpoint(data: dict, task: Task) -> tuple[nn.Module, nn.Module]:
     """The pretrained machine actor and its critic from a loaded pretraining checkpoint.
 

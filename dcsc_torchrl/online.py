@@ -24,11 +24,14 @@ from tensordict.nn import TensorDictModule
 from torchrl.modules import ValueOperator
 from torchrl.objectives import DDPGLoss, LossModule, SoftUpdate, ValueEstimators
 
-from dcsc_torchrl.losses import ThetaLoss
+from dcsc_torchrl.losses import AuthorityThetaLoss, ThetaLoss
 from dcsc_torchrl.policy import SharedPolicyModule
 
 THETA_OPTIMIZERS = {"sgd": torch.optim.SGD, "adam": torch.optim.Adam}
 WARMUP_TARGETS = ("td", "return")
+THETA_CRITICS = ("action", "authority")
+"""What theta's gradient reads: ``action``, Algorithm 1's critic of the key / action
+(``Q(s, a)``); ``authority``, a critic of the authority split (``Q(s, beta)``)."""
 
 
 class OnlineLearner(ABC):
@@ -52,6 +55,8 @@ class OnlineLearner(ABC):
     """
 
     loss: LossModule
+    soft_updated: bool = True
+    """Whether the loss keeps a target critic that :attr:`targets` soft-updates."""
 
     def __init__(
         self, policy: SharedPolicyModule, critic: torch.nn.Module, *, theta_lr: float, critic_lr: float,
@@ -59,14 +64,13 @@ class OnlineLearner(ABC):
     ) -> None:
         if int(updates_per_batch) != updates_per_batch or updates_per_batch < 1:
             raise ValueError(f"updates_per_batch must be an integer >= 1, got {updates_per_batch!r}")
-        if theta_optimizer not in THETA_OPTIMIZERS:
-            raise ValueError(f"theta_optimizer must be one of {sorted(THETA_OPTIMIZERS)}, got {theta_optimizer!r}")
+        check_online_settings(theta_optimizer=theta_optimizer)
         self.policy = policy
         self.critic = critic
         self.gamma = float(gamma)
         self.updates_per_batch = int(updates_per_batch)
         self.loss = self._make_loss(policy, critic)
-        self.targets = SoftUpdate(self.loss, tau=tau)
+        self.targets = SoftUpdate(self.loss, tau=tau) if self.soft_updated else None
         self.theta_optim = THETA_OPTIMIZERS[theta_optimizer]([policy["arbiter"].theta], lr=theta_lr)
         self.critic_optim = torch.optim.Adam(list(self.critic_params.values(True, True)), lr=critic_lr)
         self.history: list[dict[str, Any]] = []
@@ -137,8 +141,12 @@ class OnlineLearner(ABC):
             optim.zero_grad()
             loss.backward()
             optim.step()
-            self.targets.step()
+            self._soft_update()
         return loss.item()
+
+    def _soft_update(self) -> None:
+        if self.targets is not None:
+            self.targets.step()
 
     # -- Algorithm 1, once per collected batch ---------------------------------------------
     def __call__(self, batch: TensorDictBase) -> None:
@@ -153,7 +161,7 @@ class OnlineLearner(ABC):
             grad = theta.grad.detach().clone()
             self.critic_optim.step()
             self.theta_optim.step()
-            self.targets.step()
+            self._soft_update()
             self.history.append({
                 "update": len(self.history) + 1,
                 "theta": theta.detach().tolist(),
@@ -223,8 +231,83 @@ class ContinuousOnlineLearner(OnlineLearner):
         return gap.reshape(-1)
 
 
-def make_online_learner(policy: SharedPolicyModule, critic: torch.nn.Module, **settings: Any) -> OnlineLearner:
-    """Algorithm 1's learner for ``policy``'s action kind; ``settings`` are :class:`OnlineLearner`'s keywords."""
+class AuthorityOnlineLearner(OnlineLearner):
+    """Theta by Eq. 19 through the authority critic ``Q(s, beta)`` (:class:`AuthorityThetaLoss`), either action kind.
+
+    The critic is fitted on the calibration runs' recorded returns (:meth:`warm_up` with
+    ``target="return"``: each frame's stored ``beta``, 0 for the operator alone, 1 for the
+    machine alone) and then held: theta learns online from it, the critic does not (a TD
+    step would need the next frame's beta, which the arbiter decides only when that frame
+    comes). ``critic_lr`` must therefore be 0.
+    """
+
+    soft_updated = False
+
+    def __init__(self, policy: SharedPolicyModule, critic: torch.nn.Module, **settings: Any) -> None:
+        check_online_settings(theta_critic="authority", **settings)
+        super().__init__(policy, critic, **settings)
+
+    def _make_loss(self, policy: SharedPolicyModule, critic: torch.nn.Module) -> AuthorityThetaLoss:
+        arbiter = policy["arbiter"]
+        return AuthorityThetaLoss(arbiter, TensorDictModule(critic, ["observation", arbiter.out_keys[1]],
+                                                            ["state_value"]))
+
+    @property
+    def critic_params(self) -> TensorDictBase:
+        return self.loss.authority_network_params
+
+    def critic_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        """Zero: the authority critic is held after its warm-up."""
+        return torch.zeros(())
+
+    def theta_loss(self, batch: TensorDictBase) -> torch.Tensor:
+        return self.loss.loss_theta(batch)[0]
+
+    def taken_value(self, frames: TensorDictBase) -> torch.Tensor:
+        return self.loss.authority_value(frames)
+
+    def action_gap(self, frames: TensorDictBase) -> torch.Tensor:
+        """``Q(s, beta=1) - Q(s, beta=0)``: the critic's value of handing the machine all the authority."""
+        frames = frames.reshape(-1)
+        ones = torch.ones(frames.shape[0], self.policy["arbiter"].dims)
+        with torch.no_grad():
+            return self.loss.authority_value(frames, ones) - self.loss.authority_value(frames, 0 * ones)
+
+    def warm_up(self, frames: TensorDictBase, *, target: str, **kwargs: Any) -> float:
+        if target != "return":
+            raise ValueError(f"the authority critic is fitted on recorded returns: warm-up target must be 'return', "
+                             f"got {target!r}")
+        return super().warm_up(frames, target=target, **kwargs)
+
+
+def check_online_settings(*, theta_critic: str = "action", theta_optimizer: str = "sgd", critic_lr: float = 0.0,
+                          **_: Any) -> None:
+    """Refuses, before any work, the ``online`` settings :func:`make_online_learner` would refuse.
+
+    Raises:
+        ValueError: one line naming the bad value: an unknown ``theta_critic`` or
+            ``theta_optimizer``, or an authority critic with ``critic_lr`` not 0.
+    """
+    if theta_critic not in THETA_CRITICS:
+        raise ValueError(f"online.theta_critic must be one of {', '.join(THETA_CRITICS)}, got {theta_critic!r}")
+    if theta_optimizer not in THETA_OPTIMIZERS:
+        raise ValueError(f"online.theta_optimizer must be one of {sorted(THETA_OPTIMIZERS)}, got {theta_optimizer!r}")
+    if theta_critic == "authority" and critic_lr != 0:
+        raise ValueError("the authority critic is fitted on the calibration runs and held: online.critic_lr must be 0 "
+                         f"with online.theta_critic=authority, got {critic_lr!r}")
+
+
+def make_online_learner(policy: SharedPolicyModule, critic: torch.nn.Module, *, theta_critic: str = "action",
+                        **settings: Any) -> OnlineLearner:
+    """Algorithm 1's learner for ``policy``; ``settings`` are :class:`OnlineLearner`'s keywords.
+
+    ``theta_critic="action"``: the critic of the key (discrete) or action (continuous),
+    ``critic`` being the pretrained ``Q(s, .)`` / ``Q(s, a)``; ``"authority"``: the critic
+    of the authority split, ``critic`` an :func:`~dcsc_torchrl.networks.authority_critic`.
+    """
+    check_online_settings(theta_critic=theta_critic, **settings)
+    if theta_critic == "authority":
+        return AuthorityOnlineLearner(policy, critic, **settings)
     learner = DiscreteOnlineLearner if policy.discrete else ContinuousOnlineLearner
     return learner(policy, critic, **settings)
 
@@ -233,10 +316,17 @@ def returns_to_go(frames: TensorDictBase, gamma: float) -> torch.Tensor:
     """``G_t = sum_k gamma^k r_{t+k}`` to the end of each env's recorded episode, per frame ``[N]``.
 
     ``frames`` is :attr:`dcsc_torchrl.episodes.EpisodeBatch.frames`: each env's first
-    episode, frames tagged with ``env_index`` and ``frame_index``.
+    episode, frames tagged with ``env_index`` and ``frame_index`` (several runs' frames:
+    :func:`dcsc_torchrl.episodes.concat_runs`, which keeps one ``env_index`` per episode).
     """
     reward = frames["next", "reward"].reshape(-1).double()
     env, step = frames["env_index"].reshape(-1), frames["frame_index"].reshape(-1)
+    pairs = env.to(torch.int64) * (int(step.max()) + 1 if step.numel() else 1) + step.to(torch.int64)
+    if pairs.unique().numel() != pairs.numel():
+        raise ValueError(
+            "returns_to_go: two frames share an (env_index, frame_index): frames of several runs were "
+            "concatenated without renumbering their envs (use dcsc_torchrl.episodes.concat_runs)"
+        )
     out = torch.zeros_like(reward)
     for e in env.unique().tolist():
         rows = (env == e).nonzero().reshape(-1)

@@ -27,10 +27,11 @@ from torchrl.envs import TransformedEnv
 
 from dcsc_torchrl.arbiters import Arbiter, FrozenConfidenceArbiter
 from dcsc_torchrl.confidence import machine_confidence
-from dcsc_torchrl.episodes import EpisodeBatch, run_scenarios
+from dcsc_torchrl.episodes import EpisodeBatch, concat_runs, run_scenarios
 from dcsc_torchrl.machine import calibrated_uncertainty_scale
 from dcsc_torchrl.methods import METHOD_NAMES, METHODS, build_policy, learned_method, make_arbiter
-from dcsc_torchrl.online import OnlineLearner, make_online_learner
+from dcsc_torchrl.networks import authority_critic
+from dcsc_torchrl.online import WARMUP_TARGETS, OnlineLearner, make_online_learner
 from dcsc_torchrl.policy import SharedPolicyModule
 from dcsc_torchrl.tasks import Task
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperator, HumanOperatorTransform
@@ -74,6 +75,15 @@ class WarmupSettings:
     batch_size: int
     lr: float
     target: str = "return"
+    blend_betas: Sequence[float] = ()
+    """Constant betas played on :attr:`Scenarios.blend` for the warm-up (beyond the two partners alone)."""
+
+    def __post_init__(self) -> None:
+        if self.target not in WARMUP_TARGETS:
+            raise ValueError(f"warmup.target must be one of {', '.join(WARMUP_TARGETS)}, got {self.target!r}")
+        bad = [b for b in self.blend_betas if isinstance(b, bool) or not isinstance(b, (int, float)) or not 0 <= b <= 1]
+        if bad:
+            raise ValueError(f"warmup.blend_betas must be numbers in [0, 1], got {list(self.blend_betas)!r}")
 
 
 @dataclass(frozen=True)
@@ -104,18 +114,20 @@ class Scenarios:
     machine_alone: Sequence[int]
     collaboration: Sequence[int]
     validation: Sequence[int]
+    blend: Sequence[int] = ()
 
     @classmethod
     def standard(cls, *, operator_runs: int = 20, machine_alone_runs: int = 20, collaboration_runs: int = 20,
-                 validation_scenarios: int = 50, first_validation_seed: int = 0) -> Scenarios:
+                 validation_scenarios: int = 50, first_validation_seed: int = 0, blend_runs: int = 0) -> Scenarios:
         """The experiments' seeds: validation ``first_validation_seed + 0..N-1`` (0..49), the
-        operator alone from 10,000 (the machine alone on the first of the same), collaboration
-        from 20,000: ranges that never meet."""
+        operator alone from 10,000 (the machine alone and the calibration blends on the first of
+        the same), collaboration from 20,000: ranges that never meet."""
         return cls(
             operator_alone=range(10_000, 10_000 + operator_runs),
             machine_alone=range(10_000, 10_000 + machine_alone_runs),
             collaboration=range(20_000, 20_000 + collaboration_runs),
             validation=range(first_validation_seed, first_validation_seed + validation_scenarios),
+            blend=range(10_000, 10_000 + blend_runs),
         )
 
 
@@ -303,7 +315,15 @@ def run_cell(
     if len(scenarios.machine_alone):
         machine_alone = cell.play("machine_alone", "machine", scenarios.machine_alone, cell.policy("machine"))
         episodes += cell.rows("machine_alone", "machine", scenarios.machine_alone, machine_alone)
-        warm_frames = torch.cat([alone.frames, machine_alone.frames])
+        warm_frames = concat_runs(warm_frames, machine_alone.frames)
+    for beta in warmup.blend_betas if len(scenarios.blend) else ():
+        blend = cell.play("calibration_blend", f"constant/{beta}", scenarios.blend,
+                          cell.policy("constant", constant_beta=beta))
+        episodes += cell.rows("calibration_blend", "constant", scenarios.blend, blend, constant_beta=float(beta))
+        warm_frames = concat_runs(warm_frames, blend.frames)
+    if online.get("theta_critic") == "authority":  # a fresh Q(s, beta), fitted on the two partners' returns
+        torch.manual_seed(run_seed(protocol.seed, pretrain_seed, "operator_alone", "authority_critic"))
+        critic_net = authority_critic(cell.observation_size, task.action_dims)
     warm = make_online_learner(cell.policy("dcsc"), copy.deepcopy(critic_net), **{**online, "theta_lr": 0.0})
     warm.warm_up(warm_frames, target=warmup.target, updates=warmup.updates, batch_size=warmup.batch_size,
                  lr=warmup.lr, seed=run_seed(protocol.seed, pretrain_seed, "operator_alone", "critic"))

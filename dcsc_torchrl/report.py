@@ -383,7 +383,7 @@ def write_task_figures(results_dir: str | os.PathLike, task: str, main_operator:
         plot_authority(trace, task, results_dir / "fig_actions.png", f"{name}: machine / operator / shared actions"),
         plot_reward_over_time(trace, task, results_dir / "fig_reward.png", f"{name}: reward over time, scenario 0"),
     ]
-    if "constant" in set(episodes["method"]):
+    if len(constant_sweep(episodes)):  # the validation sweep (calibration blends are constants too)
         paths.append(plot_constant_sweep(episodes, task, results_dir / "fig_constant_beta.png",
                                          f"{name}: success against a constant β (validation)"))
     if (results_dir / "theta.csv").exists() and (results_dir / "theta.csv").stat().st_size > 1:

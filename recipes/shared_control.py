@@ -52,6 +52,7 @@ from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
 from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.methods import METHOD_NAMES
 from dcsc_torchrl.networks import machine_from_checkpoint
+from dcsc_torchrl.online import check_online_settings
 from dcsc_torchrl.protocol import (
     ArbiterSettings,
     MachineSettings,
@@ -72,8 +73,16 @@ OUTPUTS = (*(f"{name}.csv" for name in TABLES), "summary.md", "failed_cells.csv"
 
 
 def task_config(task: Task, overrides: Sequence[str] = (), *, quick: bool = False) -> DictConfig:
-    """The shared-control config of ``task`` (its yaml over ``shared_control.yaml``), checked."""
-    return load_config(RECIPES / task.config, overrides, quick=quick)
+    """The shared-control config of ``task`` (its yaml over ``shared_control.yaml``), checked
+    (the names of the ``online`` group, :func:`~dcsc_torchrl.online.check_online_settings`, and
+    the settings objects' own checks too)."""
+    cfg = load_config(RECIPES / task.config, overrides, quick=quick)
+    try:
+        check_online_settings(**cfg.online)
+        cell_settings(cfg)  # the settings objects' own checks (arbiter form, warm-up target, blend betas)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    return cfg
 
 
 def cell_settings(cfg: DictConfig) -> dict[str, Any]:

@@ -118,3 +118,22 @@ def test_first_theta_update_follows_the_sign_of_eq19(quick_run):
     assert grad_j.abs() > 0
     assert torch.sign(step).item() == torch.sign(grad_j).item()
     torch.testing.assert_close(step, 0.1 * grad_j.reshape(1), rtol=1e-4, atol=1e-7)
+
+
+def test_authority_critic_with_calibration_blends_runs_end_to_end(quick_run, tmp_path):
+    """The option path of the protocol: blends on the calibration scenarios, theta by Q(s, beta),
+    no constant sweep in validation (the report draws its figures all the same)."""
+    root, _ = quick_run
+    pretrained = root / "runs" / "quick" / "pretrain_lunarlander"
+    out = run_task("lunarlander", quick=True, out=tmp_path, operators=["expert"],
+                   methods=["operator", "machine", "dcsc_centred"],
+                   overrides=[f"pretrain.out_dir={pretrained}", "online.theta_critic=authority",
+                              "scenarios.blend_runs=2", "warmup.blend_betas=[0.25,0.75]"])
+    episodes = pd.read_csv(out / "episodes.csv")
+    blends = episodes[episodes["phase"] == "calibration_blend"]
+    assert sorted(blends["constant_beta"].unique()) == [0.25, 0.75]
+    assert (blends.groupby("constant_beta")["seed"].apply(list) == [[10_000, 10_001]] * 2).all()
+    assert set(episodes.loc[episodes["phase"] == "validation", "method"]) == {"operator", "machine", "dcsc_centred"}
+    theta = pd.read_csv(out / "theta.csv")
+    assert (theta["loss_critic"] == 0).all() and theta["theta"].nunique() > 1
+    assert (out / "fig_performance.png").exists() and not (out / "fig_constant_beta.png").exists()

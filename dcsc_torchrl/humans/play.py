@@ -137,10 +137,15 @@ def make_policy(env: TransformedEnv, machine: nn.Module | None, cfg: DictConfig 
 
 
 def make_learner(policy: TensorDictModuleBase, critic: nn.Module, cfg: DictConfig) -> Any:
-    """Algorithm 1's online learner (theta and the critic) with the simulated runs' settings."""
+    """Algorithm 1's online learner (theta and the critic) with the simulated runs' settings.
+
+    Theta always reads the pretrained action critic here (``theta_critic="action"``): the
+    authority critic is fitted on calibration runs of the two partners alone, which a
+    person's play session does not have.
+    """
     from dcsc_torchrl.online import make_online_learner
 
-    return make_online_learner(policy, critic, **cfg.online)
+    return make_online_learner(policy, critic, **{**cfg.online, "theta_critic": "action"})
 
 
 def status_lines(tensordict: TensorDictBase) -> list[str]:
