@@ -98,6 +98,16 @@ def cell_settings(cfg: DictConfig) -> dict[str, Any]:
     }
 
 
+def machine_checkpoint(task: Task, cfg: DictConfig, seed: int) -> Path:
+    """Where pretraining seed ``seed``'s machine is read: ``{pretrain.out_dir}/seed{seed}/checkpoint.pt``,
+    or with ``pretrain.shipped`` the file shipped with the package (seed 0's)."""
+    if cfg.pretrain.shipped:
+        from dcsc_torchrl.shipped import shipped_path
+
+        return shipped_path(task)
+    return checkpoint_path(cfg.pretrain.out_dir, seed)
+
+
 def pretrained_machine(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -> tuple[torch.nn.Module, torch.nn.Module]:
     """The machine actor and critic of pretraining seed ``seed``; pretrained first when missing
     (by the task's recipe with the ``pretrain.recipe`` settings: e.g. a converged machine).
@@ -110,11 +120,9 @@ def pretrained_machine(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -
     """
     import importlib
 
+    path = machine_checkpoint(task, cfg, seed)
     if cfg.pretrain.shipped:
-        from dcsc_torchrl.shipped import shipped_machine
-
-        return shipped_machine(task)
-    path = checkpoint_path(cfg.pretrain.out_dir, seed)
+        return machine_from_checkpoint(load_checkpoint(path, task=task.name), task)
     recipe = importlib.import_module(task.pretrain_recipe)
     settings = [*cfg.pretrain.recipe, f"seed={seed}", f"logger.out_dir={path.parent}"]
     if not path.exists():

@@ -47,7 +47,7 @@ import ray
 import torch
 from omegaconf import DictConfig
 
-from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
+from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.cli import Parser, add_sweep_options
 from dcsc_torchrl.config import load_config
 from dcsc_torchrl.methods import METHOD_NAMES
@@ -61,6 +61,7 @@ from recipes.shared_control import (
     GridResult,
     TaskGrid,
     gather,
+    machine_checkpoint,
     make_grid,
     pretrained_machine,
     run_grid,
@@ -95,7 +96,7 @@ def ensure_pretrained(task: str, cfg: DictConfig, seed: int, quick: bool) -> str
     to the end, after an earlier attempt stopped halfway) when short (:func:`pretrained_machine`)."""
     _worker_setup()
     pretrained_machine(get_task(task), cfg, seed, quick=quick)
-    return str(checkpoint_path(cfg.pretrain.out_dir, seed))
+    return str(machine_checkpoint(get_task(task), cfg, seed))
 
 
 def _count_attempt(directory: Path) -> int:

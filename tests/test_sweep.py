@@ -121,3 +121,17 @@ def test_task_prefixed_overrides_go_to_that_tasks_protocol_config():
 def test_dcsc_sweep_hands_its_arguments_to_the_recipe():
     args = build_parser().parse_args(["sweep", "ray.workers=1", "--quick", "--out", "DIR"])
     assert args.handler is _sweep and args.quick and args.out == Path("DIR") and args.overrides == ["ray.workers=1"]
+
+
+def test_a_sweep_with_the_shipped_machine_reads_the_shipped_file_and_pretrains_nothing(tmp_path, monkeypatch):
+    """`dcsc sweep ... <task>.pretrain.shipped=true`: the cells load the file `dcsc run` would."""
+    from dcsc_torchrl.shipped import shipped_path
+    from recipes.shared_control import machine_checkpoint, task_config
+    from recipes.sweep import ensure_pretrained
+
+    monkeypatch.chdir(tmp_path)
+    task = get_task("uav")
+    cfg = task_config(task, ["pretrain.shipped=true", "pretrain.seeds=[0]"])
+    assert machine_checkpoint(task, cfg, 0) == shipped_path(task)
+    assert Path(ensure_pretrained._function("uav", cfg, 0, False)) == shipped_path(task)
+    assert list(tmp_path.iterdir()) == []
