@@ -284,8 +284,10 @@ def run_record(grid: TaskGrid, methods: Sequence[str]) -> dict[str, Any]:
 def prepare_results(task_dir: Path, record: Mapping[str, Any], *, fresh: bool) -> None:
     """Claims ``task_dir`` for a run of ``record``: refuses another config's results unless ``fresh``.
 
-    ``fresh`` removes the earlier run's outputs (:data:`OUTPUTS`). The temporary files of a
-    killed run are removed in any case; the record is written to :data:`RUN_RECORD`.
+    A grid that keeps the config and methods and adds cells (more pretraining seeds or
+    operators) extends the folder: its finished cells stay, the new ones run. ``fresh``
+    removes the earlier run's outputs (:data:`OUTPUTS`). The temporary files of a killed run
+    are removed in any case; the record is written to :data:`RUN_RECORD`.
 
     Raises:
         ConfigError: ``task_dir`` holds results of another config, or of a run that kept no record.
@@ -298,7 +300,10 @@ def prepare_results(task_dir: Path, record: Mapping[str, Any], *, fresh: bool) -
         record_path.unlink(missing_ok=True)
     elif record_path.exists():
         old = yaml.safe_load(record_path.read_text()) or {}
-        changed = config_diff(old, json.loads(json.dumps(record)))
+        new = json.loads(json.dumps(record))
+        if set(old.get("cells", [])) <= set(new["cells"]):
+            old["cells"] = new["cells"]  # a grown grid: the cells done stay valid
+        changed = config_diff(old, new)
         if changed:
             more = f"; and {len(changed) - 5} more" if len(changed) > 5 else ""
             raise ConfigError(f"{task_dir} holds results of another config ({'; '.join(changed[:5])}{more}): "

@@ -20,6 +20,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import torch
+import yaml
 
 from dcsc_torchrl import cli
 from dcsc_torchrl.checkpoint import (
@@ -327,6 +328,19 @@ def test_an_old_folder_without_a_record_is_refused_and_fresh_starts_over(tmp_pat
     prepare_results(task_dir, record, fresh=True)
     assert sorted(p.name for p in task_dir.iterdir()) == ["notes.txt", RUN_RECORD]
     prepare_results(task_dir, record, fresh=False)  # the same config again: accepted
+
+
+def test_a_grid_that_adds_cells_extends_the_folder_and_one_that_drops_cells_is_refused(tmp_path):
+    task_dir = tmp_path / "lunarlander"
+    record = {"config": {"seed": 0}, "methods": ["machine"], "cells": ["expert-seed0"]}
+    prepare_results(task_dir, record, fresh=False)
+    grown = {**record, "cells": ["expert-seed0", "expert-seed1"]}
+    prepare_results(task_dir, grown, fresh=False)
+    assert yaml.safe_load((task_dir / RUN_RECORD).read_text())["cells"] == grown["cells"]
+    with pytest.raises(ConfigError, match="cells"):
+        prepare_results(task_dir, record, fresh=False)
+    with pytest.raises(ConfigError, match="seed: 0 -> 1"):
+        prepare_results(task_dir, {**grown, "config": {"seed": 1}}, fresh=False)
 
 
 # -- logs and Ctrl-C --------------------------------------------------------------------
