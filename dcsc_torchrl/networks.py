@@ -79,6 +79,23 @@ def mlp(
     return nn.Sequential(*layers)
 
 
+def orthogonal_init_(net: nn.Module, *, out_gain: float, hidden_gain: float = 2.0**0.5) -> nn.Module:
+    """Orthogonal weights and zero biases for every ``nn.Linear`` of ``net``, in place; returns ``net``.
+
+    The hidden layers get ``hidden_gain`` (sqrt 2, for ReLU-like units), the last layer
+    ``out_gain``: 0.01 for a policy head (a near-uniform first policy), 1 for a value head
+    (Stable-Baselines3's ``ortho_init``; Andrychowicz et al. 2021 measure the small policy
+    head among the choices that matter most in on-policy RL).
+    """
+    linears = [module for module in net.modules() if isinstance(module, nn.Linear)]
+    if not linears:
+        raise ValueError(f"orthogonal_init_: {type(net).__name__} has no nn.Linear layer")
+    for index, layer in enumerate(linears):
+        nn.init.orthogonal_(layer.weight, gain=out_gain if index == len(linears) - 1 else hidden_gain)
+        nn.init.zeros_(layer.bias)
+    return net
+
+
 def lunar_actor(hidden: Sequence[int], dropout: float, *, obs_dims: int = 8, n_actions: int = 4) -> nn.Sequential:
     """TargetLunarLander actor: the first ``obs_dims`` values -> action logits."""
     return nn.Sequential(FirstDims(obs_dims), mlp(obs_dims, n_actions, hidden, dropout=dropout))

@@ -37,7 +37,7 @@ from torchrl.objectives import A2CLoss, ClipPPOLoss, SoftUpdate, ValueEstimators
 from dcsc_torchrl.batched_envs import make_lunar_env
 from dcsc_torchrl.config import ConfigError, to_plain
 from dcsc_torchrl.losses import QCriticLoss
-from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic
+from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic, orthogonal_init_
 from dcsc_torchrl.training import (
     TrainingRun,
     greedy_episodes,
@@ -50,6 +50,7 @@ CONFIG = Path(__file__).with_suffix(".yaml")
 COLUMNS = ["episode", "frames", "return", "steps", "success",
            "loss_objective", "loss_critic", "loss_entropy", "loss_qvalue"]
 LR_SCHEDULES = ("constant", "linear")  # optim.lr_schedule: Table A1's constant lr, or linear to 0 over the budget
+NETWORK_INITS = ("default", "orthogonal")  # network.init: PyTorch's, or orthogonal (small policy head)
 ALGORITHMS = ("a2c", "ppo")  # loss.algorithm: Table A1's A2C, or clipped PPO on the same networks
 
 
@@ -125,6 +126,8 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     ``resume``); returns the learning curve's PNG."""
     if cfg.optim.lr_schedule not in LR_SCHEDULES:
         raise ConfigError(f"optim.lr_schedule: expected one of {', '.join(LR_SCHEDULES)}, got {cfg.optim.lr_schedule!r}")
+    if cfg.network.init not in NETWORK_INITS:
+        raise ConfigError(f"network.init: expected one of {', '.join(NETWORK_INITS)}, got {cfg.network.init!r}")
     if cfg.loss.algorithm not in ALGORITHMS:
         raise ConfigError(f"loss.algorithm: expected one of {', '.join(ALGORITHMS)}, got {cfg.loss.algorithm!r}")
     torch.manual_seed(cfg.seed)
@@ -133,6 +136,9 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     # --- networks: actor (with dropout), V critic for A2C, Q critic for DC-SC ----------
     actor_net = lunar_actor(cfg.network.hidden, cfg.network.actor_dropout)
     value_net = lunar_critic(cfg.network.hidden, 1)
+    if cfg.network.init == "orthogonal":
+        orthogonal_init_(actor_net, out_gain=0.01)
+        orthogonal_init_(value_net, out_gain=1.0)
     qvalue_net = lunar_critic(cfg.network.hidden, 4, obs_dims=LUNAR_QVALUE_DIMS)
     actor, actor_critic_loss, optim = make_actor_critic(cfg, actor_net, value_net, make_lunar_env(1).full_action_spec["action"])
     qvalue = TensorDictModule(qvalue_net, in_keys=["observation"], out_keys=["action_value"])

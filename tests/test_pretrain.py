@@ -185,6 +185,26 @@ def test_an_unknown_algorithm_is_refused(tmp_path):
         run_recipe("lunarlander", tmp_path, "loss.algorithm=sac")
 
 
+def test_an_unknown_network_init_is_refused(tmp_path):
+    with pytest.raises(ConfigError, match="network.init: expected one of default, orthogonal, got 'xavier'"):
+        run_recipe("lunarlander", tmp_path, "network.init=xavier")
+
+
+def test_orthogonal_init_gives_orthogonal_layers_a_small_policy_head_and_zero_biases():
+    from dcsc_torchrl.networks import lunar_actor, orthogonal_init_
+
+    torch.manual_seed(0)
+    linears = [m for m in orthogonal_init_(lunar_actor([64, 64], 0.01), out_gain=0.01).modules()
+               if isinstance(m, torch.nn.Linear)]
+    for layer, gain in zip(linears, (math.sqrt(2), math.sqrt(2), 0.01)):
+        w = layer.weight / gain  # rows (out < in) or columns orthonormal
+        gram = w @ w.T if w.shape[0] <= w.shape[1] else w.T @ w
+        torch.testing.assert_close(gram, torch.eye(len(gram)), atol=1e-5, rtol=0)
+        assert not layer.bias.any()
+    with pytest.raises(ValueError, match="no nn.Linear"):
+        orthogonal_init_(torch.nn.Tanh(), out_gain=1.0)
+
+
 def test_the_ppo_recipe_trains_checkpoints_and_evaluates(tmp_path):
     run_recipe("lunarlander", tmp_path, "loss.algorithm=ppo", "ppo.minibatch_size=8")
     assert len(pd.read_csv(tmp_path / "train.csv")) == 6
