@@ -18,6 +18,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
 
 from dcsc_torchrl.tasks import Task
 
@@ -95,6 +96,7 @@ def run_scenarios(
     rollout_length: int,
     update: Callable[[TensorDictBase], None] | None = None,
     trace: bool = False,
+    exploration_type: ExplorationType = ExplorationType.RANDOM,
 ) -> EpisodeBatch:
     """Plays the first episode of every env (scenario) of ``env`` under ``policy``.
 
@@ -109,6 +111,8 @@ def run_scenarios(
         update: called on every collected batch ``[envs, rollout_length]`` (DC-SC's
             online learning); ``None`` for the fixed methods.
         trace: record every frame of scenario 0's episode.
+        exploration_type: how the policy's probabilistic modules act (the collector's):
+            ``RANDOM`` samples the discrete shared action, ``MODE`` takes its mode.
 
     Returns:
         The rows (``return``, ``steps``, :attr:`Task.episode_keys`, ``mean_beta``), the trace
@@ -116,7 +120,7 @@ def run_scenarios(
     """
     n_envs = env.batch_size[0]
     collector = Collector(env, policy, frames_per_batch=n_envs * rollout_length, total_frames=-1,
-                          auto_register_policy_transforms=False)
+                          auto_register_policy_transforms=False, exploration_type=exploration_type)
     running = torch.ones(n_envs, dtype=torch.bool)
     rows: list[dict[str, Any] | None] = [None] * n_envs
     beta_sum, frame_count = torch.zeros(n_envs), torch.zeros(n_envs)

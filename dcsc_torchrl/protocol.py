@@ -24,6 +24,7 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 from torchrl.envs import TransformedEnv
+from torchrl.envs.utils import ExplorationType
 
 from dcsc_torchrl.arbiters import Arbiter, FrozenConfidenceArbiter
 from dcsc_torchrl.confidence import machine_confidence
@@ -86,6 +87,10 @@ class WarmupSettings:
             raise ValueError(f"warmup.blend_betas must be numbers in [0, 1], got {list(self.blend_betas)!r}")
 
 
+SHARED_ACTIONS = ("sample", "mode")
+"""``protocol.shared_action``: draw the discrete shared action, or take the mixture's mode."""
+
+
 @dataclass(frozen=True)
 class ProtocolSettings:
     """What the protocol does in a cell besides the methods' own settings.
@@ -97,6 +102,11 @@ class ProtocolSettings:
         max_steps: the episode limit, ``None`` for the task's own.
         calibrate_machine: read the machine's uncertainty in the unit that gives the
             median operator-alone frame ``b_m = 1/2`` (:func:`calibrated_uncertainty_scale`).
+        shared_action: how a discrete shared action is taken from Eq. 14's mixture:
+            ``"sample"`` draws it (Algorithm 1, line 7), ``"mode"`` takes its most likely
+            key (TorchRL's ``ExplorationType.MODE``: the operator keeps every frame where
+            ``1 - beta`` outweighs the machine's mass on another key). Every method and phase
+            plays the same way; continuous actions are not affected.
     """
 
     seed: int = 0
@@ -104,6 +114,17 @@ class ProtocolSettings:
     group_size: int = 10
     max_steps: int | None = None
     calibrate_machine: bool = True
+    shared_action: str = "sample"
+
+    def __post_init__(self) -> None:
+        if self.shared_action not in SHARED_ACTIONS:
+            raise ValueError(f"protocol.shared_action: expected one of {', '.join(SHARED_ACTIONS)}, "
+                             f"got {self.shared_action!r}")
+
+    @property
+    def exploration_type(self) -> ExplorationType:
+        """The collectors' exploration type for :attr:`shared_action`."""
+        return ExplorationType.RANDOM if self.shared_action == "sample" else ExplorationType.MODE
 
 
 @dataclass(frozen=True)
@@ -224,7 +245,7 @@ class _Cell:
         torch.manual_seed(run_seed(seed, self.pretrain_seed, phase, method))
         env = self.make_env(seeds, operator_seed=operator_seed(seed, self.pretrain_seed, seeds[0]))
         result = run_scenarios(env, policy, self.task, rollout_length=self.protocol.rollout_length, update=update,
-                               trace=trace)
+                               trace=trace, exploration_type=self.protocol.exploration_type)
         env.close()
         return result
 

@@ -137,3 +137,31 @@ def test_authority_critic_with_calibration_blends_runs_end_to_end(quick_run, tmp
     theta = pd.read_csv(out / "theta.csv")
     assert (theta["loss_critic"] == 0).all() and theta["theta"].nunique() > 1
     assert (out / "fig_performance.png").exists() and not (out / "fig_constant_beta.png").exists()
+
+
+@pytest.mark.parametrize("shared_action", ["sample", "mode"])
+def test_the_mode_of_the_mixture_keeps_the_operators_key_below_half_the_authority(shared_action):
+    """``protocol.shared_action``: at a constant beta = 0.4 the mode is the operator's key on
+    every frame; sampling hands some frames to the machine's keys."""
+    from dcsc_torchrl.episodes import run_scenarios
+    from dcsc_torchrl.networks import lunar_actor
+    from dcsc_torchrl.protocol import ProtocolSettings
+
+    task = get_task("lunarlander")
+    cfg = task_config(task, quick=True)
+    env = task.make_envs([0, 1], 40, [HumanOperatorTransform(task.make_operator("expert"), seed=0),
+                                      HumanConfidenceTransform(**cfg.human)])
+    torch.manual_seed(0)
+    policy = build_policy(lunar_actor([16], 0.1), make_arbiter("constant", 1, constant_beta=0.4),
+                          env.full_action_spec["action"], discrete=True, **cfg.machine)
+    settings = ProtocolSettings(shared_action=shared_action)
+    frames = run_scenarios(env, policy, task, rollout_length=5, exploration_type=settings.exploration_type).frames
+    same = (frames["action"] == frames["human_action"]).all(-1)
+    assert same.all() if shared_action == "mode" else not same.all()
+
+
+def test_an_unknown_shared_action_is_refused():
+    from dcsc_torchrl.config import ConfigError
+
+    with pytest.raises(ConfigError, match="protocol.shared_action: expected one of sample, mode, got 'argmax'"):
+        task_config(get_task("lunarlander"), ["protocol.shared_action=argmax"])
