@@ -196,7 +196,7 @@ def test_orthogonal_init_gives_orthogonal_layers_a_small_policy_head_and_zero_bi
     torch.manual_seed(0)
     linears = [m for m in orthogonal_init_(lunar_actor([64, 64], 0.01), out_gain=0.01).modules()
                if isinstance(m, torch.nn.Linear)]
-    for layer, gain in zip(linears, (math.sqrt(2), math.sqrt(2), 0.01)):
+    for layer, gain in zip(linears, (math.sqrt(2), math.sqrt(2), 0.01), strict=True):
         w = layer.weight / gain  # rows (out < in) or columns orthonormal
         gram = w @ w.T if w.shape[0] <= w.shape[1] else w.T @ w
         torch.testing.assert_close(gram, torch.eye(len(gram)), atol=1e-5, rtol=0)
