@@ -497,7 +497,16 @@ def human_confidence(k: TensorLike, p: float, eta: float, delta1: float) -> Tens
 # --------------------------------------------------------------------------------------
 
 
-def _check_machine_params(lam: float, delta2: float) -> None:
+def check_machine_params(lam: float, delta2: float, tau_inv: float = 0.0) -> None:
+    """Refuses Eqs. 11-13's parameters out of range: ``0 < lam < 1``, ``delta2 > 1``, ``tau_inv >= 0``.
+
+    Examples:
+        >>> check_machine_params(lam=0.6, delta2=0.5)
+        Traceback (most recent call last):
+        ...
+        ValueError: delta2 must be in (1.0, inf), got 0.5
+    """
+    check_in_range("tau_inv", tau_inv, 0.0, math.inf)
     check_in_range("lam", lam, 0.0, 1.0, low_inclusive=False, high_inclusive=False)
     check_in_range("delta2", delta2, 1.0, math.inf, low_inclusive=False, high_inclusive=False)
 
@@ -595,7 +604,7 @@ def machine_confidence(c: TensorLike, lam: float, delta2: float, *, validate: bo
         >>> machine_confidence(torch.tensor([0.0, 0.01, 1.0, 100.0]), lam=0.6, delta2=1.05)
         tensor([1.0000, 0.9783, 0.5363, 0.0159])
     """
-    _check_machine_params(lam, delta2)
+    check_machine_params(lam, delta2)
     c_t = _as_float_tensor("c", c)
     if validate:
         _check_nonnegative_finite("c", c_t)

@@ -27,15 +27,28 @@ from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import ExplorationType
 
 from dcsc_torchrl.arbiters import Arbiter, FrozenConfidenceArbiter
-from dcsc_torchrl.confidence import machine_confidence
+from dcsc_torchrl.confidence import check_machine_params, machine_confidence
 from dcsc_torchrl.episodes import EpisodeBatch, concat_runs, run_scenarios
 from dcsc_torchrl.machine import calibrated_uncertainty_scale
-from dcsc_torchrl.methods import METHOD_NAMES, METHODS, build_policy, learned_method, make_arbiter
+from dcsc_torchrl.methods import (
+    ARBITER_FORMS,
+    METHOD_NAMES,
+    METHODS,
+    build_policy,
+    learned_method,
+    make_arbiter,
+)
 from dcsc_torchrl.networks import authority_critic
 from dcsc_torchrl.online import WARMUP_TARGETS, OnlineLearner, make_online_learner
 from dcsc_torchrl.policy import SharedPolicyModule
 from dcsc_torchrl.tasks import Task
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperator, HumanOperatorTransform
+
+
+def check_betas(name: str, betas: Sequence[float]) -> None:
+    """Refuses a list of authorities ``betas`` with an entry that is not a number in [0, 1]."""
+    if any(isinstance(b, bool) or not isinstance(b, (int, float)) or not 0 <= b <= 1 for b in betas):
+        raise ValueError(f"{name} must be numbers in [0, 1], got {list(betas)!r}")
 
 
 @dataclass(frozen=True)
@@ -46,6 +59,9 @@ class MachineSettings:
     lam: float
     delta2: float
     tau_inv: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_machine_params(self.lam, self.delta2, self.tau_inv)  # a ValueError naming the parameter
 
 
 @dataclass(frozen=True)
@@ -60,7 +76,9 @@ class ArbiterSettings:
     constant_betas: Sequence[float] = (0.0, 0.5, 1.0)
 
     def __post_init__(self) -> None:
-        learned_method(self.form)  # a ValueError naming the forms
+        if self.form not in ARBITER_FORMS:
+            raise ValueError(f"form must be one of {', '.join(ARBITER_FORMS)}, got {self.form!r}")
+        check_betas("constant_betas", self.constant_betas)
 
     def start(self, method: str) -> dict[str, float]:
         """The ``make_arbiter`` keywords of a learned method's initial arbiter."""
@@ -81,10 +99,8 @@ class WarmupSettings:
 
     def __post_init__(self) -> None:
         if self.target not in WARMUP_TARGETS:
-            raise ValueError(f"warmup.target must be one of {', '.join(WARMUP_TARGETS)}, got {self.target!r}")
-        bad = [b for b in self.blend_betas if isinstance(b, bool) or not isinstance(b, (int, float)) or not 0 <= b <= 1]
-        if bad:
-            raise ValueError(f"warmup.blend_betas must be numbers in [0, 1], got {list(self.blend_betas)!r}")
+            raise ValueError(f"target must be one of {', '.join(WARMUP_TARGETS)}, got {self.target!r}")
+        check_betas("blend_betas", self.blend_betas)
 
 
 SHARED_ACTIONS = ("sample", "mode")
@@ -118,8 +134,7 @@ class ProtocolSettings:
 
     def __post_init__(self) -> None:
         if self.shared_action not in SHARED_ACTIONS:
-            raise ValueError(f"protocol.shared_action: expected one of {', '.join(SHARED_ACTIONS)}, "
-                             f"got {self.shared_action!r}")
+            raise ValueError(f"shared_action must be one of {', '.join(SHARED_ACTIONS)}, got {self.shared_action!r}")
 
     @property
     def exploration_type(self) -> ExplorationType:

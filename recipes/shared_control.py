@@ -36,7 +36,7 @@ import os
 import shutil
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -64,6 +64,7 @@ from dcsc_torchrl.protocol import (
 from dcsc_torchrl.report import write_task_figures, write_task_summary
 from dcsc_torchrl.runlog import Progress
 from dcsc_torchrl.tasks import TASK_NAMES, Task, get_task
+from dcsc_torchrl.transforms import HumanConfidenceTransform
 
 RECIPES = Path(__file__).parent
 TABLES = ("episodes", "trace", "theta", "calibration")
@@ -73,29 +74,53 @@ OUTPUTS = (*(f"{name}.csv" for name in TABLES), "summary.md", "failed_cells.csv"
 
 
 def task_config(task: Task, overrides: Sequence[str] = (), *, quick: bool = False) -> DictConfig:
-    """The shared-control config of ``task`` (its yaml over ``shared_control.yaml``), checked
-    (the names of the ``online`` group, :func:`~dcsc_torchrl.online.check_online_settings`, and
-    the settings objects' own checks too)."""
+    """The shared-control config of ``task`` (its yaml over ``shared_control.yaml``), checked:
+    the yaml's keys and types (:func:`~dcsc_torchrl.config.load_config`), then every group's
+    values by the object that will use them (:func:`cell_settings`)."""
     cfg = load_config(RECIPES / task.config, overrides, quick=quick)
-    try:
-        check_online_settings(**cfg.online)
-        cell_settings(cfg)  # the settings objects' own checks (arbiter form, warm-up target, blend betas)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
+    cell_settings(cfg)
     return cfg
 
 
+def _human_settings(**group: Any) -> dict[str, Any]:
+    """:class:`HumanConfidenceTransform`'s keywords, its ranges checked (Eqs. 6-9: ``K > 0``, ...)."""
+    HumanConfidenceTransform(**group)
+    return group
+
+
+def _online_settings(**group: Any) -> dict[str, Any]:
+    """:class:`~dcsc_torchrl.online.OnlineLearner`'s keywords, the names it would refuse refused now."""
+    check_online_settings(**group)
+    return group
+
+
+SETTINGS: dict[str, Callable[..., Any]] = {
+    "human": _human_settings,
+    "machine": MachineSettings,
+    "arbiter": ArbiterSettings,
+    "online": _online_settings,
+    "warmup": WarmupSettings,
+    "protocol": ProtocolSettings,
+    "scenarios": Scenarios.standard,
+}
+"""The object each config group's keys are the keywords of (``protocol`` also gets the config's seed)."""
+
+
+def _settings_of(group: str, build: Callable[..., Any], values: Mapping[str, Any], **extra: Any) -> Any:
+    """``build(**values)``; a ``ValueError`` in it is a :class:`ConfigError` naming the key (``human.K ...``)."""
+    try:
+        return build(**values, **extra)
+    except ValueError as err:
+        text = str(err)
+        named = text.split(" ", 1)[0] in values  # the message starts with the parameter's name
+        raise ConfigError(f"{group}.{text}" if named else text) from None
+
+
 def cell_settings(cfg: DictConfig) -> dict[str, Any]:
-    """:func:`run_cell`'s settings from the config's groups (each group is one settings object's fields)."""
-    return {
-        "human": dict(cfg.human),
-        "machine": MachineSettings(**cfg.machine),
-        "arbiter": ArbiterSettings(**cfg.arbiter),
-        "online": dict(cfg.online),
-        "warmup": WarmupSettings(**cfg.warmup),
-        "protocol": ProtocolSettings(seed=cfg.seed, **cfg.protocol),
-        "scenarios": Scenarios.standard(**cfg.scenarios),
-    }
+    """:func:`run_cell`'s settings from the config's groups, every value checked by the object
+    that uses it: a bad one is a :class:`ConfigError` naming its key."""
+    return {group: _settings_of(group, build, cfg[group], **({"seed": cfg.seed} if group == "protocol" else {}))
+            for group, build in SETTINGS.items()}
 
 
 def machine_checkpoint(task: Task, cfg: DictConfig, seed: int) -> Path:

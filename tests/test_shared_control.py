@@ -163,5 +163,5 @@ def test_the_mode_of_the_mixture_keeps_the_operators_key_below_half_the_authorit
 def test_an_unknown_shared_action_is_refused():
     from dcsc_torchrl.config import ConfigError
 
-    with pytest.raises(ConfigError, match="protocol.shared_action: expected one of sample, mode, got 'argmax'"):
+    with pytest.raises(ConfigError, match="protocol.shared_action must be one of sample, mode, got 'argmax'"):
         task_config(get_task("lunarlander"), ["protocol.shared_action=argmax"])
