@@ -22,7 +22,7 @@ from typing import Any
 
 _HOMES = {
     "arbiters": ["Arbiter", "CentredConfidenceArbiter", "ConfidenceArbiter", "ConstantArbiter",
-                 "FrozenConfidenceArbiter", "HULAArbiter", "HumanOnlyArbiter", "MachineOnlyArbiter",
+                 "FrozenConfidenceArbiter", "HULAArbiter", "HumanOnlyArbiter", "MachineOnlyArbiter", "RuleArbiter",
                  "centred_fusion_weight", "confidence_ratio", "fusion_weight"],
     "confidence": ["human_confidence", "knowledge_update", "machine_confidence", "mc_dropout_uncertainty"],
     "losses": ["QCriticLoss", "ThetaLoss"],

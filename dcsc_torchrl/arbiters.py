@@ -9,7 +9,7 @@ pipeline with a different arbiter.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -184,6 +184,50 @@ class HULAArbiter(Arbiter):
             check_finite(str(self.uncertainty_key), uncertainty)
             self._uncertainty_checked = True
         return (uncertainty <= self.threshold).to(ratio.dtype)
+
+
+class RuleArbiter(Arbiter):
+    """A hand-written, rule-based switch: the machine holds the controls where ``rule`` holds.
+
+    The paper's other family of authority allocation (its §1: "rule-based approaches grant
+    authority based on predefined logic or conditions"), kept as a reference that reads
+    the state and no confidence: ``beta = rule(observation)``, 1 (the machine) where the
+    rule holds and 0 (the operator) elsewhere. A rule may also return a share in [0, 1].
+    It shows whether the two partners are complementary *in state*, which no constant
+    beta and no scalar theta can express (docs/results.md).
+
+    Args:
+        rule: ``observation [*batch, obs] -> [*batch]``, a bool or a share in [0, 1] per frame.
+        dims: number of action dimensions.
+        observation_key: where the observation is read.
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> arbiter = RuleArbiter(lambda obs: obs[..., 0] > 0)
+        >>> td = TensorDict({"machine_confidence": torch.ones(2, 1), "human_confidence": torch.ones(2, 1),
+        ...                  "observation": torch.tensor([[0.5, 0.0], [-0.5, 0.0]])}, [2])
+        >>> arbiter(td)["beta"]
+        tensor([[1.],
+                [0.]])
+    """
+
+    def __init__(self, rule: Callable[[torch.Tensor], torch.Tensor], dims: int = 1, *, observation_key: NestedKey = "observation", **kwargs) -> None:
+        super().__init__(dims, **kwargs)
+        if not callable(rule):
+            raise TypeError(f"rule must be callable (observation -> share per frame), got {type(rule).__name__}")
+        self.rule = rule
+        self.observation_key = observation_key
+        self.in_keys = [*self.in_keys[:2], observation_key]
+
+    def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+        share = self.rule(tensordict.get(self.observation_key)).to(ratio.dtype)
+        if share.shape != ratio.shape[:-1]:
+            raise ValueError(f"RuleArbiter's rule must return one share per frame, shape {tuple(ratio.shape[:-1])}, "
+                             f"got {tuple(share.shape)}")
+        if not getattr(self, "_share_checked", False) or check_finite_every_frame():
+            check_in_range("rule share", share, 0.0, 1.0)
+            self._share_checked = True
+        return share.unsqueeze(-1)
 
 
 def centred_fusion_weight(theta: torch.Tensor, ratio: torch.Tensor, gain: float) -> torch.Tensor:

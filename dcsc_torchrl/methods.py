@@ -6,6 +6,8 @@ A :class:`Method` names an arbiter and says how the protocol runs it (``kind``):
 machine       fixed     :class:`MachineOnlyArbiter` (A2C / DDPG alone)
 operator      fixed     :class:`HumanOnlyArbiter` (the operator alone)
 hula          fixed     :class:`HULAArbiter` (threshold calibrated on the operator-alone runs)
+rule          fixed     :class:`RuleArbiter` on the task's hand-written switch
+                        (:attr:`Task.authority_rule`; skipped for a task without one)
 dcsc          learned   :class:`ConfidenceArbiter` (Eq. 15 as printed), theta learned online
 dcsc_centred  learned   :class:`CentredConfidenceArbiter`, theta learned online
 dcsc_frozen   frozen    a learned arbiter fed its confidences' collaboration means
@@ -29,11 +31,14 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from collections.abc import Callable, Sequence
+
     import torch
     from torchrl.data import TensorSpec
 
     from dcsc_torchrl.arbiters import Arbiter
     from dcsc_torchrl.policy import SharedPolicyModule
+    from dcsc_torchrl.tasks import Task
 
 
 @dataclass(frozen=True)
@@ -61,6 +66,7 @@ METHODS: dict[str, Method] = {
         Method("machine", "machine", "fixed"),
         Method("operator", "operator", "fixed"),
         Method("hula", "HULA", "fixed"),
+        Method("rule", "rule-based switch", "fixed"),
         Method("dcsc", "DC-SC (Eq. 15)", "learned", form="paper"),
         Method("dcsc_centred", "DC-SC (centred)", "learned", form="centred"),
         Method("dcsc_frozen", "DC-SC, confidences frozen", "frozen"),
@@ -72,6 +78,18 @@ METHOD_NAMES = tuple(METHODS)
 BEST_CONSTANT = Method("best_constant", "best constant β (oracle)", "oracle")
 """The report's row for the sweep's best beta (picked on the scenarios it is scored on)."""
 ARBITER_FORMS = tuple(m.form for m in METHODS.values() if m.kind == "learned")
+
+
+def task_methods(task: Task, methods: Sequence[str] = METHOD_NAMES) -> tuple[str, ...]:
+    """``methods`` that ``task`` defines: all of them, less ``rule`` for a task without an
+    :attr:`~dcsc_torchrl.tasks.Task.authority_rule`.
+
+    Examples:
+        >>> from dcsc_torchrl.tasks import get_task
+        >>> "rule" in task_methods(get_task("lunarlander")), "rule" in task_methods(get_task("uav"))
+        (True, False)
+    """
+    return tuple(m for m in methods if m != "rule" or task.authority_rule is not None)
 
 
 def learned_method(form: str) -> str:
@@ -90,13 +108,15 @@ def make_arbiter(
     gain: float = 3.0,
     hula_threshold: float | None = None,
     constant_beta: float | None = None,
+    rule: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> Arbiter:
     """The arbiter that makes ``method`` out of the common pipeline (``action_dims`` betas).
 
     ``dcsc`` is :class:`ConfidenceArbiter` (Eq. 15, ``theta_init``), ``dcsc_centred``
     :class:`CentredConfidenceArbiter` (``theta_init``, ``gain``), ``hula`` a
     :class:`HULAArbiter` of ``hula_threshold``, ``constant`` a :class:`ConstantArbiter`
-    of ``constant_beta``. ``dcsc_frozen`` wraps a learned arbiter
+    of ``constant_beta``, ``rule`` a :class:`RuleArbiter` of ``rule`` (a task's
+    ``authority_rule.machine_holds``). ``dcsc_frozen`` wraps a learned arbiter
     (:class:`FrozenConfidenceArbiter`), so the protocol builds it.
     """
     from dcsc_torchrl import arbiters
@@ -109,6 +129,10 @@ def make_arbiter(
         if hula_threshold is None:
             raise ValueError("the HULA arbiter needs a threshold: calibrate it on the operator-alone runs")
         return arbiters.HULAArbiter(hula_threshold, action_dims)
+    if method == "rule":
+        if rule is None:
+            raise ValueError("the rule arbiter needs a rule: the task's authority_rule (this task has none)")
+        return arbiters.RuleArbiter(rule, action_dims)
     if method == "dcsc":
         return arbiters.ConfidenceArbiter(theta_init, action_dims)
     if method == "dcsc_centred":

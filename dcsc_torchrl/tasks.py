@@ -30,10 +30,25 @@ if TYPE_CHECKING:
     from pathlib import Path
 
     import pandas as pd
+    import torch
     from torch import nn
     from torchrl.envs import Transform, TransformedEnv
 
     from dcsc_torchrl.transforms import HumanOperator
+
+
+@dataclass(frozen=True)
+class AuthorityRule:
+    """A task's hand-written rule-based switch (the ``rule`` method, :class:`~dcsc_torchrl.arbiters.RuleArbiter`).
+
+    Args:
+        label: the method's name in the task's tables and figures.
+        machine_holds: ``observation [*batch, obs] -> [*batch]`` bool, where the machine
+            holds the controls (the operator elsewhere).
+    """
+
+    label: str
+    machine_holds: Callable[[torch.Tensor], torch.Tensor] = field(repr=False)
 
 
 @dataclass(frozen=True)
@@ -60,6 +75,8 @@ class Task:
         action_labels: the components' axis labels in figures (default: their names).
         plot_trajectories: ``(trace, scenario seed, path, title) -> path``, the figure of the traced
             paths, for a task whose frames have positions (``None``: no such figure).
+        authority_rule: the task's rule-based switch, the ``rule`` method (``None``: the task
+            has none, and the protocol skips that method).
         make_envs: ``(scenario_seeds, max_steps, transforms) -> TransformedEnv``, one env per scenario.
         make_operator: ``preset -> HumanOperator``, the simulated operator with a preset's traits.
         make_networks: ``network config group -> (actor, critic)``, the pretraining recipe's networks.
@@ -86,6 +103,7 @@ class Task:
     trace_vectors: Mapping[str, str] = field(default_factory=dict)
     action_labels: tuple[str, ...] = ()
     plot_trajectories: Callable[[pd.DataFrame, int, Path, str], Path] | None = field(default=None, repr=False)
+    authority_rule: AuthorityRule | None = None
 
     def __post_init__(self) -> None:
         if not self.action_labels:
@@ -155,6 +173,14 @@ def _uav_networks(network: Mapping[str, Any]) -> tuple[nn.Module, nn.Module]:
     return uav_actor(network["hidden"], network["actor_dropout"]), uav_critic(network["hidden"])
 
 
+def _over_the_pad(observation: torch.Tensor) -> torch.Tensor:
+    """Whether the lander is above the pad, within half its half-width of the centre
+    (:data:`envs.target_lunar_lander.PAD_HALF_WIDTH`; docs/experiment_log.md)."""
+    from envs.target_lunar_lander import PAD_HALF_WIDTH
+
+    return (observation[..., 0] - observation[..., 8]).abs() < PAD_HALF_WIDTH / 2
+
+
 def _uav_trajectories(trace: pd.DataFrame, scenario_seed: int, path: Path, title: str) -> Path:
     from dcsc_torchrl.report import plot_uav_trajectories
 
@@ -172,6 +198,7 @@ TASKS: dict[str, Task] = {
             checkpoint_modules=("actor", "qvalue"),
             make_envs=_lunar_envs, make_operator=_pilot, make_networks=_lunar_networks,
             make_pretraining_envs=_lunar_pretraining_envs,
+            authority_rule=AuthorityRule("rule: machine over the pad", _over_the_pad),
         ),
         Task(
             name="uav", title="UAV path planning", machine_label="DDPG", discrete=False,

@@ -52,6 +52,7 @@ from gymnasium.utils import EzPickle
 __all__ = [
     "CHUNKS",
     "PAD_CHUNKS",
+    "PAD_HALF_WIDTH",
     "STAND_FRAMES",
     "TargetLunarLander",
     "pad_x_of_chunk",
@@ -64,6 +65,9 @@ PAD_CHUNKS = tuple(range(1, CHUNKS - 1))
 """Chunks the pad may be centred on: the inner ones, 1..9."""
 CENTRE_CHUNK = CHUNKS // 2
 """The chunk of gymnasium's fixed pad (``random_pad=False``)."""
+PAD_HALF_WIDTH = 2 / (CHUNKS - 1)
+"""Half the pad's width in the normalised units of ``obs[0]`` (the pad spans the chunk each side
+of its centre): 0.2."""
 STAND_FRAMES = 50
 """Consecutive frames standing on the pad that count as landed when Box2D keeps it awake."""
 MAX_PARTICLES = 32

@@ -50,7 +50,7 @@ from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
 from dcsc_torchrl.cli import Parser, add_run_options
 from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
 from dcsc_torchrl.humans.traits import PRESETS
-from dcsc_torchrl.methods import METHOD_NAMES
+from dcsc_torchrl.methods import METHOD_NAMES, task_methods
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.online import check_online_settings
 from dcsc_torchrl.protocol import (
@@ -235,11 +235,15 @@ def check_names(kind: str, names: Sequence[str], known: Sequence[str]) -> list[s
 
 def write_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: Path, machine: torch.nn.Module,
                critic: torch.nn.Module, info: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Runs one cell (``run_cell``) and writes its rows to its directory, ``cell.json`` last (atomic files)."""
+    """Runs one cell (``run_cell``) and writes its rows to its directory, ``cell.json`` last (atomic files).
+
+    Of ``methods`` the cell runs those its task defines (:func:`~dcsc_torchrl.methods.task_methods`:
+    the UAV has no ``rule``)."""
     directory = cell.directory(out)
     directory.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     task = get_task(cell.task)
+    methods = task_methods(task, methods)
     result = run_cell(task, task.make_operator(cell.operator), machine, critic, operator_name=cell.operator,
                       pretrain_seed=cell.pretrain_seed, methods=methods, trace=cell.trace, **cell_settings(cfg),
                       progress=lambda line: print(f"  {cell.name}: {line}", file=sys.stderr, flush=True))
@@ -435,7 +439,13 @@ def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False
     Everything named (config keys, methods, operator presets, the results folder's
     earlier config, the checkpoints there are) is checked before a machine is loaded or pretrained.
     """
-    methods = tuple(check_names("method", methods or METHOD_NAMES, METHOD_NAMES))
+    if methods:  # named ones must be the task's (the default, every method, runs those the task defines)
+        task = get_task(task_name)
+        undefined = [m for m in check_names("method", methods, METHOD_NAMES) if m not in task_methods(task)]
+        if undefined:
+            raise ConfigError(f"task {task.name} does not define method(s) {', '.join(undefined)}: "
+                              "it has no authority rule")
+    methods = tuple(methods or METHOD_NAMES)
     grid = checked_grid(task_name, quick=quick, overrides=overrides, operators=operators)
     torch.set_num_threads(grid.cfg.threads)
     run_grid(Path(out), [grid], methods, local_executor, quick=quick, fresh=fresh)

@@ -166,6 +166,7 @@ def test_run_help_names_every_method_it_accepts(capsys):
         (["run", "lunarlander", "human.eta=1.5"], ["human.eta must be in (0.0, 1.0), got 1.5"]),
         (["run", "uav", "machine.delta2=0.5"], ["machine.delta2 must be in (1.0, inf), got 0.5"]),
         (["run", "lunarlander", "protocol.shared_action=argmax"], ["protocol.shared_action", "sample, mode"]),
+        (["run", "uav", "--methods", "rule"], ["task uav does not define method(s) rule", "no authority rule"]),
         (["sweep", "lunarlander.protocol.group_size=0"], ["protocol.group_size", ">= 1"]),
         (["sweep", "ray.workerz=2"], ["unknown key ray.workerz", "did you mean ray.workers?"]),
         (["reproduce", "--workers", "0"], ["--workers", "expected an integer >= 1, got 0"]),

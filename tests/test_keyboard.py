@@ -9,7 +9,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.envs import GymWrapper, TransformedEnv
-from torchrl.envs.utils import check_env_specs
+from torchrl.envs.utils import ExplorationType, check_env_specs
 
 from dcsc_torchrl.batched_envs import LUNAR_ID
 from dcsc_torchrl.checkpoint import save_checkpoint
@@ -216,7 +216,8 @@ def test_keyboard_pilot_passes_check_env_specs():
 # --- dcsc play ------------------------------------------------------------------------
 
 
-def play_session(machine, *, critic=None, out=None, episodes=1, events=list):
+def play_session(machine, *, critic=None, out=None, episodes=1, events=list, exploration_type=ExplorationType.RANDOM,
+                 theta_init=None):
     clock = FakeClock()
     render_env = gym.make(LUNAR_ID, render_mode="rgb_array")
     screen = RecordingScreen()
@@ -230,12 +231,15 @@ def play_session(machine, *, critic=None, out=None, episodes=1, events=list):
     )
     env = make_play_env(render_env, pilot, HumanConfidenceTransform(), seed=0)
     cfg = play_config()
+    if theta_init is not None:
+        cfg.arbiter.centred.theta_init = theta_init
     policy = make_policy(env, machine, cfg)
     learner = make_learner(policy, critic, cfg) if critic is not None else None
     recorder = None
     if out is not None:
         recorder = PlayRecorder(out, "dcsc_centred" if machine is not None else "operator", "tester")
-    summaries = play(env, policy, pilot, episodes=episodes, learner=learner, rollout_length=5, recorder=recorder)
+    summaries = play(env, policy, pilot, episodes=episodes, learner=learner, rollout_length=5, recorder=recorder,
+                     exploration_type=exploration_type)
     return summaries, screen, policy, learner
 
 
@@ -297,6 +301,21 @@ def test_play_with_dcsc_learns_online_and_writes_the_simulated_runs_files(tmp_pa
                    "human_confidence", "machine_uncertainty", "machine_confidence", "beta"):
         assert trace[column].notna().all(), column
     assert trace.groupby("episode")["step"].max().tolist() == [s["steps"] for s in summaries]
+
+
+@pytest.mark.parametrize("exploration_type", [ExplorationType.MODE, ExplorationType.RANDOM])
+def test_play_takes_the_shared_key_as_protocol_shared_action_says(tmp_path, exploration_type):
+    """``mode``: below half the authority the machine never outweighs the person's key; ``sample``: it may."""
+    import pandas as pd
+
+    actor, _ = load_machine(tiny_checkpoint(tmp_path))
+    # theta -3: beta = sigmoid(-3 + 3 (2 b_t - 1)) < 1/2 on every frame where b_t < 1
+    play_session(machine=actor, out=tmp_path / "study", exploration_type=exploration_type, theta_init=-3.0)
+    trace = pd.read_csv(tmp_path / "study" / "trace.csv")
+    minority = trace[trace["beta"] < 0.5]
+    assert len(minority) > 20
+    kept = (minority["shared_action"] == minority["operator_action"]).all()
+    assert kept == (exploration_type == ExplorationType.MODE)
 
 
 def test_play_alone_writes_the_files_with_empty_machine_columns(tmp_path):

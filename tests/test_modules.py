@@ -15,6 +15,7 @@ from dcsc_torchrl.arbiters import (
     HULAArbiter,
     HumanOnlyArbiter,
     MachineOnlyArbiter,
+    RuleArbiter,
     confidence_ratio,
 )
 from dcsc_torchrl.confidence import machine_confidence, mc_dropout_uncertainty
@@ -121,6 +122,23 @@ def test_every_arbiter_gives_the_beta_it_should():
     expected = (td["machine_uncertainty"] <= 0.5).float().expand(64, 3)
     torch.testing.assert_close(hula["beta"], expected)
     assert hula["beta"].shape == (64, 3)
+
+
+def test_rule_arbiter_gives_the_machine_the_frames_its_rule_holds_on():
+    td = confidences(6, torch.Generator().manual_seed(2)).set("observation", torch.linspace(-1, 1, 6).unsqueeze(-1))
+    out = RuleArbiter(lambda obs: obs[..., 0] > 0, dims=3)(td)
+    assert out["beta"].tolist() == [[0.0] * 3] * 3 + [[1.0] * 3] * 3
+    assert "observation" in RuleArbiter(lambda obs: obs[..., 0] > 0).in_keys
+
+
+@pytest.mark.parametrize(
+    "rule, message",
+    [(lambda obs: obs[..., 0] * 2, "rule share must be in"), (lambda obs: obs > 0, "one share per frame")],
+)
+def test_rule_arbiter_refuses_a_share_out_of_range_or_of_the_wrong_shape(rule, message):
+    td = confidences(3, torch.Generator().manual_seed(3)).set("observation", torch.ones(3, 2))
+    with pytest.raises(ValueError, match=message):
+        RuleArbiter(rule)(td)
 
 
 def test_confidence_arbiter_keeps_beta_at_least_half_for_nonnegative_theta():

@@ -11,7 +11,7 @@ import torch
 
 from dcsc_torchrl.batched_envs import LUNAR_ID
 from dcsc_torchrl.humans.traits import PRESETS
-from dcsc_torchrl.methods import METHOD_NAMES, METHODS, learned_method, make_arbiter
+from dcsc_torchrl.methods import METHOD_NAMES, METHODS, learned_method, make_arbiter, task_methods
 from dcsc_torchrl.tasks import TASKS, get_task
 from dcsc_torchrl.transforms import HumanOperator, HumanOperatorTransform
 from envs.uav import HORIZON
@@ -56,8 +56,9 @@ def test_the_registry_module_loads_no_torch():
 
 @pytest.mark.parametrize("method", [m for m in METHOD_NAMES if METHODS[m].kind != "frozen"])
 def test_every_method_but_the_ablation_has_an_arbiter_of_the_task_dims(method):
-    arbiter = make_arbiter(method, 3, theta_init=0.5, hula_threshold=0.1, constant_beta=0.2)
-    td = arbiter(_confidences(4))
+    arbiter = make_arbiter(method, 3, theta_init=0.5, hula_threshold=0.1, constant_beta=0.2,
+                           rule=lambda obs: obs[..., 0] > 0)
+    td = arbiter(_confidences(4).set("observation", torch.randn(4, 9)))
     assert td["beta"].shape == (4, 3)
 
 
@@ -78,3 +79,18 @@ def _confidences(n: int):
 
     return TensorDict({"machine_confidence": torch.rand(n, 1), "human_confidence": torch.rand(n, 1),
                        "machine_uncertainty": torch.rand(n, 1)}, [n])
+
+
+def test_the_rule_method_runs_for_a_task_with_an_authority_rule_only():
+    assert task_methods(get_task("lunarlander")) == METHOD_NAMES
+    assert task_methods(get_task("uav")) == tuple(m for m in METHOD_NAMES if m != "rule")
+    with pytest.raises(ValueError, match="the rule arbiter needs a rule"):
+        make_arbiter("rule", 1)
+
+
+def test_the_lunar_rule_hands_the_machine_the_controls_over_the_middle_of_the_pad():
+    rule = get_task("lunarlander").authority_rule.machine_holds
+    obs = torch.zeros(4, 9)
+    obs[:, 8] = 0.6  # the pad's centre
+    obs[:, 0] = torch.tensor([0.6, 0.65, 0.75, -0.6])  # over its centre, inside half its half-width, beyond, far
+    assert rule(obs).tolist() == [True, True, False, False]

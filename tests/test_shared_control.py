@@ -10,8 +10,7 @@ import torch
 from torchrl.collectors import Collector
 
 from dcsc_torchrl.checkpoint import load_checkpoint
-from dcsc_torchrl.methods import METHOD_NAMES as METHODS
-from dcsc_torchrl.methods import build_policy, make_arbiter
+from dcsc_torchrl.methods import build_policy, make_arbiter, task_methods
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.online import DiscreteOnlineLearner
 from dcsc_torchrl.tasks import get_task
@@ -41,7 +40,7 @@ def test_quick_reproduce_writes_every_output(quick_run, task):
     episodes = pd.read_csv(out / "episodes.csv")
     assert set(episodes.columns) >= EPISODE_COLUMNS
     val = episodes[episodes["phase"] == "validation"]
-    assert set(val["method"]) == set(METHODS)
+    assert set(val["method"]) == set(task_methods(get_task(task)))  # the UAV has no rule-based switch
     assert sorted(val.loc[val["method"] == "constant", "constant_beta"].unique()) == [0.0, 0.5, 1.0]
     assert set(episodes["phase"]) == {"operator_alone", "machine_alone", "collaboration", "validation"}
     assert set(val["group"]) == {1, 2}
@@ -50,7 +49,7 @@ def test_quick_reproduce_writes_every_output(quick_run, task):
         assert val["path_length"].map(math.isfinite).all()
     trace = pd.read_csv(out / "trace.csv")
     assert set(trace.columns) >= TRACE_COLUMNS
-    assert set(trace["method"]) == set(METHODS) - {"constant"}
+    assert set(trace["method"]) == set(task_methods(get_task(task))) - {"constant"}
     numeric = trace.select_dtypes("number")
     assert numeric.map(math.isfinite).all().all()
     for name in ["fig_performance", "fig_confidence", "fig_actions", "fig_reward", "fig_constant_beta", "fig_theta"] + (

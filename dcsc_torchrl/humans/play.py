@@ -36,13 +36,14 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.envs import Compose, GymWrapper, RewardSum, StepCounter, TransformedEnv
 from torchrl.envs.libs.gym import default_info_dict_reader
-from torchrl.envs.utils import step_mdp
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from dcsc_torchrl.batched_envs import LUNAR_ID, LUNAR_INFO_KEYS
 from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.humans.keyboard import KeyboardPilot, NoDisplayError
 from dcsc_torchrl.humans.operator_alone import operator_only_policy
 from dcsc_torchrl.networks import machine_from_checkpoint
+from dcsc_torchrl.protocol import ProtocolSettings
 from dcsc_torchrl.runlog import RunLog
 from dcsc_torchrl.tasks import get_task
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
@@ -232,6 +233,7 @@ def play(
     learner: Any | None = None,
     rollout_length: int = 5,
     recorder: PlayRecorder | None = None,
+    exploration_type: ExplorationType = ExplorationType.RANDOM,
 ) -> list[dict[str, Any]]:
     """Flies ``episodes`` episodes (fewer if the pilot quits); one summary dict per finished episode.
 
@@ -239,7 +241,9 @@ def play(
     seed). With a ``learner`` (an :class:`~dcsc_torchrl.online.OnlineLearner`), every
     ``rollout_length`` frames are handed to it as a batch ``[1, rollout_length]``
     (Algorithm 1: theta, and the critic unless held, learn while the person flies). With a
-    ``recorder``, every frame and every finished episode is written.
+    ``recorder``, every frame and every finished episode is written. ``exploration_type``
+    is how the shared action is taken from Eq. 14's mixture (``protocol.shared_action``:
+    ``RANDOM`` draws it, ``MODE`` takes its most likely key), as in the simulated runs.
     """
     summaries: list[dict[str, Any]] = []
     rollout: list[TensorDictBase] = []
@@ -250,7 +254,7 @@ def play(
                 td = env.reset()
             step_index = 0
             while True:
-                with torch.no_grad():
+                with torch.no_grad(), set_exploration_type(exploration_type):
                     td = policy(td)
                     pilot.status = status_lines(td)
                     td = env.step(td)
@@ -314,7 +318,8 @@ def run_play(args: argparse.Namespace) -> None:
     print("arrow keys (or W/A/D): up = main engine, left/right = side engines; Esc quits")
     try:
         summaries = play(env, policy, pilot, args.episodes, seed=args.seed, learner=learner,
-                         rollout_length=int(cfg.protocol.rollout_length), recorder=recorder)
+                         rollout_length=int(cfg.protocol.rollout_length), recorder=recorder,
+                         exploration_type=ProtocolSettings(seed=cfg.seed, **cfg.protocol).exploration_type)
     finally:
         pilot.close()
     for summary in summaries:
