@@ -36,6 +36,7 @@ from torchrl.modules import OneHotCategorical, ProbabilisticActor
 
 from dcsc_torchrl.config import load_config
 from dcsc_torchrl.methods import METHOD_NAMES as METHODS
+from dcsc_torchrl.methods import task_methods
 from dcsc_torchrl.tasks import TASK_NAMES as TASKS
 from dcsc_torchrl.tasks import get_task
 from dcsc_torchrl.training import make_collector
@@ -58,7 +59,8 @@ def cell_frames(episodes: pd.DataFrame) -> int:
 def full_cell_frames(cfg: DictConfig, task: str) -> int:
     """The frame bound of one full-scale cell: every batch of scenarios runs to the horizon."""
     counts = cfg.scenarios
-    scenarios = counts.operator_runs + counts.collaboration_runs + counts.validation_scenarios * len(METHODS)
+    methods = task_methods(get_task(task), METHODS)
+    scenarios = counts.operator_runs + counts.collaboration_runs + counts.validation_scenarios * len(methods)
     return scenarios * (cfg.protocol.max_steps or get_task(task).max_steps)
 
 
