@@ -211,7 +211,8 @@ class RuleArbiter(Arbiter):
                 [0.]])
     """
 
-    def __init__(self, rule: Callable[[torch.Tensor], torch.Tensor], dims: int = 1, *, observation_key: NestedKey = "observation", **kwargs) -> None:
+    def __init__(self, rule: Callable[[torch.Tensor], torch.Tensor], dims: int = 1, *,
+                 observation_key: NestedKey = "observation", **kwargs) -> None:
         super().__init__(dims, **kwargs)
         if not callable(rule):
             raise TypeError(f"rule must be callable (observation -> share per frame), got {type(rule).__name__}")

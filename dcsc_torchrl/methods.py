@@ -92,6 +92,13 @@ def task_methods(task: Task, methods: Sequence[str] = METHOD_NAMES) -> tuple[str
     return tuple(m for m in methods if m != "rule" or task.authority_rule is not None)
 
 
+def check_task_methods(task: Task, methods: Sequence[str]) -> None:
+    """Refuses ``methods`` that ``task`` does not define (``rule`` without an authority rule)."""
+    undefined = [m for m in methods if m not in task_methods(task)]
+    if undefined:
+        raise ValueError(f"task {task.name} does not define method(s) {', '.join(undefined)}: it has no authority rule")
+
+
 def learned_method(form: str) -> str:
     """The learned method whose arbiter has ``form`` (``paper`` -> ``dcsc``, ``centred`` -> ``dcsc_centred``)."""
     for method in METHODS.values():
@@ -116,7 +123,7 @@ def make_arbiter(
     :class:`CentredConfidenceArbiter` (``theta_init``, ``gain``), ``hula`` a
     :class:`HULAArbiter` of ``hula_threshold``, ``constant`` a :class:`ConstantArbiter`
     of ``constant_beta``, ``rule`` a :class:`RuleArbiter` of ``rule`` (a task's
-    ``authority_rule.machine_holds``). ``dcsc_frozen`` wraps a learned arbiter
+    ``authority_rule``). ``dcsc_frozen`` wraps a learned arbiter
     (:class:`FrozenConfidenceArbiter`), so the protocol builds it.
     """
     from dcsc_torchrl import arbiters

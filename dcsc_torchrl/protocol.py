@@ -35,9 +35,9 @@ from dcsc_torchrl.methods import (
     METHOD_NAMES,
     METHODS,
     build_policy,
+    check_task_methods,
     learned_method,
     make_arbiter,
-    task_methods,
 )
 from dcsc_torchrl.networks import authority_critic
 from dcsc_torchrl.online import WARMUP_TARGETS, OnlineLearner, make_online_learner
@@ -246,9 +246,8 @@ class _Cell:
     def policy(self, method: str, arbiter: Arbiter | None = None, **kwargs: Any) -> SharedPolicyModule:
         if arbiter is None:
             start = self.arbiter.start(method) if METHODS[method].kind == "learned" else {}
-            rule = self.task.authority_rule.machine_holds if self.task.authority_rule is not None else None
-            arbiter = make_arbiter(method, self.task.action_dims, hula_threshold=self.hula_threshold, rule=rule,
-                                   **start, **kwargs)
+            arbiter = make_arbiter(method, self.task.action_dims, hula_threshold=self.hula_threshold,
+                                   rule=self.task.authority_rule, **start, **kwargs)
         return build_policy(self.machine_net, arbiter, self.action_spec, discrete=self.task.discrete,
                             num_samples=self.machine.num_samples, lam=self.machine.lam, delta2=self.machine.delta2,
                             tau_inv=self.machine.tau_inv, uncertainty_scale=self.uncertainty_scale,
@@ -336,9 +335,7 @@ def run_cell(
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}: expected names of {', '.join(METHOD_NAMES)}")
-    undefined = [m for m in methods if m not in task_methods(task)]
-    if undefined:
-        raise ValueError(f"task {task.name} does not define method(s) {undefined}: it has no authority rule")
+    check_task_methods(task, methods)
     scenarios = Scenarios.standard() if scenarios is None else scenarios
     protocol = ProtocolSettings() if protocol is None else protocol
     base = {"task": task.name, "operator": operator_name, "pretrain_seed": pretrain_seed}

@@ -38,20 +38,6 @@ if TYPE_CHECKING:
 
 
 @dataclass(frozen=True)
-class AuthorityRule:
-    """A task's hand-written rule-based switch (the ``rule`` method, :class:`~dcsc_torchrl.arbiters.RuleArbiter`).
-
-    Args:
-        label: the method's name in the task's tables and figures.
-        machine_holds: ``observation [*batch, obs] -> [*batch]`` bool, where the machine
-            holds the controls (the operator elsewhere).
-    """
-
-    label: str
-    machine_holds: Callable[[torch.Tensor], torch.Tensor] = field(repr=False)
-
-
-@dataclass(frozen=True)
 class Task:
     """One task of the project.
 
@@ -75,8 +61,10 @@ class Task:
         action_labels: the components' axis labels in figures (default: their names).
         plot_trajectories: ``(trace, scenario seed, path, title) -> path``, the figure of the traced
             paths, for a task whose frames have positions (``None``: no such figure).
-        authority_rule: the task's rule-based switch, the ``rule`` method (``None``: the task
-            has none, and the protocol skips that method).
+        authority_rule: the task's rule-based switch, the ``rule`` method
+            (:class:`~dcsc_torchrl.arbiters.RuleArbiter`): ``observation [*batch, obs] -> [*batch]``
+            bool, where the machine holds the controls (``None``: the task has none, and the
+            protocol skips that method).
         make_envs: ``(scenario_seeds, max_steps, transforms) -> TransformedEnv``, one env per scenario.
         make_operator: ``preset -> HumanOperator``, the simulated operator with a preset's traits.
         make_networks: ``network config group -> (actor, critic)``, the pretraining recipe's networks.
@@ -103,7 +91,7 @@ class Task:
     trace_vectors: Mapping[str, str] = field(default_factory=dict)
     action_labels: tuple[str, ...] = ()
     plot_trajectories: Callable[[pd.DataFrame, int, Path, str], Path] | None = field(default=None, repr=False)
-    authority_rule: AuthorityRule | None = None
+    authority_rule: Callable[[torch.Tensor], torch.Tensor] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if not self.action_labels:
@@ -198,7 +186,7 @@ TASKS: dict[str, Task] = {
             checkpoint_modules=("actor", "qvalue"),
             make_envs=_lunar_envs, make_operator=_pilot, make_networks=_lunar_networks,
             make_pretraining_envs=_lunar_pretraining_envs,
-            authority_rule=AuthorityRule("rule: machine over the pad", _over_the_pad),
+            authority_rule=_over_the_pad,
         ),
         Task(
             name="uav", title="UAV path planning", machine_label="DDPG", discrete=False,

@@ -50,7 +50,7 @@ from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
 from dcsc_torchrl.cli import Parser, add_run_options
 from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
 from dcsc_torchrl.humans.traits import PRESETS
-from dcsc_torchrl.methods import METHOD_NAMES, task_methods
+from dcsc_torchrl.methods import METHOD_NAMES, check_task_methods, task_methods
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.online import check_online_settings
 from dcsc_torchrl.protocol import (
@@ -440,11 +440,10 @@ def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False
     earlier config, the checkpoints there are) is checked before a machine is loaded or pretrained.
     """
     if methods:  # named ones must be the task's (the default, every method, runs those the task defines)
-        task = get_task(task_name)
-        undefined = [m for m in check_names("method", methods, METHOD_NAMES) if m not in task_methods(task)]
-        if undefined:
-            raise ConfigError(f"task {task.name} does not define method(s) {', '.join(undefined)}: "
-                              "it has no authority rule")
+        try:
+            check_task_methods(get_task(task_name), check_names("method", methods, METHOD_NAMES))
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
     methods = tuple(methods or METHOD_NAMES)
     grid = checked_grid(task_name, quick=quick, overrides=overrides, operators=operators)
     torch.set_num_threads(grid.cfg.threads)

@@ -89,7 +89,7 @@ def test_the_rule_method_runs_for_a_task_with_an_authority_rule_only():
 
 
 def test_the_lunar_rule_hands_the_machine_the_controls_over_the_middle_of_the_pad():
-    rule = get_task("lunarlander").authority_rule.machine_holds
+    rule = get_task("lunarlander").authority_rule
     obs = torch.zeros(4, 9)
     obs[:, 8] = 0.6  # the pad's centre
     obs[:, 0] = torch.tensor([0.6, 0.65, 0.75, -0.6])  # over its centre, inside half its half-width, beyond, far
