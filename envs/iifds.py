@@ -134,21 +134,53 @@ def tangent_basis(normal: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return n_hat, t1_hat, t2_hat
 
 
-def _inverse_gamma_power(
-    gamma: Tensor, coefficient0: Tensor, d_surface: Tensor, d_goal: Tensor
-) -> Tensor:
+def _inverse_gamma_power(scaled_log_gamma: Tensor, coefficient0: Tensor) -> Tensor:
     """``1 / Γ^(1/ρ)`` with ``ρ = max(ρ0, 0.1) exp(1 - 1/(d_g d_s))``, computed in log space.
 
-    ``Γ^(1/ρ) = exp(ln Γ exp(1/(d_g d_s) - 1) / ρ0)``. The inner exponent is bounded to
-    ``±60`` (``d_g d_s → 0``: the UAV on a surface or at the goal, where ``ρ → 0`` and
-    the term vanishes outside the obstacle), ``ln Γ`` is floored at ``ln 1e-12`` (the UAV
-    at a centre), and the result is bounded by ``e^20`` (inside an obstacle only).
+    ``Γ^(1/ρ) = exp(ln Γ exp(1/(d_g d_s) - 1) / ρ0)``; ``scaled_log_gamma`` is
+    ``ln Γ exp(1/(d_g d_s) - 1)`` from :func:`_scaled_log_gamma` (shared by ``ρ`` and ``σ``).
+    The result is bounded by ``e^20`` (inside an obstacle only).
     """
-    coefficient0 = coefficient0.clamp_min(COEFFICIENT_FLOOR)
+    log_power = scaled_log_gamma / coefficient0.clamp_min(COEFFICIENT_FLOOR)
+    return torch.exp(-log_power.clamp_min(-_FACTOR_LOG_LIMIT))
+
+
+def _scaled_log_gamma(gamma: Tensor, d_surface: Tensor, d_goal: Tensor) -> Tensor:
+    """``ln Γ exp(1/(d_g d_s) - 1)``: the exponent of ``Γ^(1/ρ)`` times ``ρ0``.
+
+    The inner exponent is bounded to ``±60`` (``d_g d_s → 0``: the UAV on a surface or at
+    the goal, where ``ρ → 0`` and the term vanishes outside the obstacle), and ``ln Γ`` is
+    floored at ``ln 1e-12`` (the UAV at a centre).
+    """
     exponent = (1.0 / (d_goal * d_surface) - 1.0).clamp(-_EXP_LIMIT, _EXP_LIMIT)
     log_gamma = gamma.clamp_min(torch.finfo(gamma.dtype).tiny).log().clamp_min(_LOG_GAMMA_FLOOR)
-    log_power = log_gamma * exponent.exp() / coefficient0
-    return torch.exp(-log_power.clamp_min(-_FACTOR_LOG_LIMIT))
+    return log_gamma * exponent.exp()
+
+
+def _modulation_terms(
+    position: Tensor,
+    goal: Tensor,
+    centre: Tensor,
+    radius: Tensor,
+    rho0: Tensor,
+    sigma0: Tensor,
+    tau: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The parts of ``M = I - r n_hat n_hat^T + s t n_hat^T``: ``(Γ, n_hat, t, r, s)``.
+
+    ``r = 1/Γ^(1/ρ)`` (repulsive), ``s = 1/Γ^(1/σ)`` (tangential), ``t = cos(τ) t1_hat +
+    sin(τ) t2_hat`` (a unit vector: ``||t|| = 1``, so the paper's ``t n^T / (||t|| ||n||)``
+    is ``t n_hat^T``). Shapes as :func:`modulation_matrix`'s arguments.
+    """
+    offset = position - centre
+    distance_sq = offset.square().sum(-1)
+    gamma = distance_sq / radius.square()
+    n_hat, t1_hat, t2_hat = tangent_basis(2 * offset / radius.square().unsqueeze(-1))
+    tangent = torch.cos(tau).unsqueeze(-1) * t1_hat + torch.sin(tau).unsqueeze(-1) * t2_hat
+    d_surface = distance_sq.sqrt() - radius
+    d_goal = (position - goal).norm(dim=-1)
+    scaled = _scaled_log_gamma(gamma, d_surface, d_goal)
+    return gamma, n_hat, tangent, _inverse_gamma_power(scaled, rho0), _inverse_gamma_power(scaled, sigma0)
 
 
 def modulation_matrix(
@@ -167,7 +199,7 @@ def modulation_matrix(
     t2_hat``. ``ρ = ρ0 exp(1 - 1/(d_g d_s))`` and ``σ = σ0 exp(1 - 1/(d_g d_s))`` with
     ``d_s = ||p - c|| - R`` and ``d_g = ||p - g||``; ``ρ0``, ``σ0`` are floored at
     ``COEFFICIENT_FLOOR``. Whether the flow moves away from the obstacle (``M = I``) is
-    decided in :func:`iifds_velocity`.
+    decided in :func:`iifds_velocity`, which applies ``M`` to a vector without forming it.
 
     Args:
         position: UAV position ``[..., 3]``.
@@ -181,13 +213,7 @@ def modulation_matrix(
     Returns:
         ``M`` of shape ``[..., 3, 3]``.
     """
-    gamma = sphere_gamma(position, centre, radius)
-    n_hat, t1_hat, t2_hat = tangent_basis(sphere_normal(position, centre, radius))
-    tangent = torch.cos(tau).unsqueeze(-1) * t1_hat + torch.sin(tau).unsqueeze(-1) * t2_hat
-    d_surface = (position - centre).norm(dim=-1) - radius
-    d_goal = (position - goal).norm(dim=-1)
-    repulsive = _inverse_gamma_power(gamma, rho0, d_surface, d_goal)
-    tangential = _inverse_gamma_power(gamma, sigma0, d_surface, d_goal)
+    _, n_hat, tangent, repulsive, tangential = _modulation_terms(position, goal, centre, radius, rho0, sigma0, tau)
     n_row = n_hat.unsqueeze(-2)
     identity = torch.eye(3, dtype=position.dtype, device=position.device)
     return (
@@ -260,10 +286,12 @@ def iifds_velocity(
     """Modulated flow ``ū`` around K moving spheres, with ``||ū||`` capped at ``SPEED_CAP``.
 
     Per obstacle, ``ū_k = M_k (u - v_p,k) + v_p,k`` with ``M_k = I`` where the relative
-    flow already leaves the obstacle (``n_k · (u - v_p,k) >= 0``). The blend
-    ``ū = Σ_k w_k ū_k`` is computed as ``ū = M̄ u + Σ_k w_k (I - M_k) v_p,k`` with
-    ``M̄ = Σ_k w_k M_k``: for static obstacles it is Wang et al.'s ``ū = M̄ u``, for one
-    obstacle Yao et al.'s ``ū = M (u - v_p) + v_p``.
+    flow already leaves the obstacle (``n_k · (u - v_p,k) >= 0``), blended as
+    ``ū = Σ_k w_k ū_k``: for static obstacles Wang et al.'s ``ū = M̄ u`` with
+    ``M̄ = Σ_k w_k M_k``, for one obstacle Yao et al.'s ``ū = M (u - v_p) + v_p``. ``M_k``
+    is applied without forming it: ``M_k x = x + (n_hat_k · x)(s_k t_k - r_k n_hat_k)``
+    (:func:`modulation_matrix`'s terms), so ``ū = u + Σ_k w_k (n_hat_k · (u - v_p,k))
+    (s_k t_k - r_k n_hat_k)``, a few vector operations per obstacle instead of 3 x 3 products.
 
     Args:
         position: UAV position ``[..., 3]``.
@@ -281,24 +309,16 @@ def iifds_velocity(
     """
     u = attractive_flow(position, goal, v0)
     p_k = position.unsqueeze(-2)
-    gamma = sphere_gamma(p_k, centres, radii)
-    matrices = modulation_matrix(
-        p_k,
-        goal.unsqueeze(-2),
-        centres,
-        radii,
-        rho0.unsqueeze(-1),
-        sigma0.unsqueeze(-1),
-        tau.unsqueeze(-1),
+    gamma, n_hat, tangent, repulsive, tangential = _modulation_terms(
+        p_k, goal.unsqueeze(-2), centres, radii, rho0.unsqueeze(-1), sigma0.unsqueeze(-1), tau.unsqueeze(-1)
     )
-    v_p = transported_velocity(gamma, velocities)
-    leaving = ((p_k - centres) * (u.unsqueeze(-2) - v_p)).sum(-1) >= 0  # n_k · (u - v_p,k) >= 0
-    identity = torch.eye(3, dtype=position.dtype, device=position.device)
-    matrices = torch.where(leaving[..., None, None], identity, matrices)
+    relative = u.unsqueeze(-2) - transported_velocity(gamma, velocities)  # u - v_p,k
+    leaving = ((p_k - centres) * relative).sum(-1) >= 0  # n_k · (u - v_p,k) >= 0: M_k = I
+    # M_k x = x + (n_hat · x)(s t - r n_hat), so ū_k = M_k (u - v_p,k) + v_p,k = u + that turn
+    along = torch.where(leaving, 0.0, (n_hat * relative).sum(-1))
+    turn = along.unsqueeze(-1) * (tangential.unsqueeze(-1) * tangent - repulsive.unsqueeze(-1) * n_hat)
     weights = obstacle_weights(gamma)
-    m_bar = (weights[..., None, None] * matrices).sum(-3)
-    carried = ((identity - matrices) * v_p.unsqueeze(-2)).sum(-1)  # (I - M_k) v_p,k
-    u_bar = (m_bar * u.unsqueeze(-2)).sum(-1) + (weights.unsqueeze(-1) * carried).sum(-2)
+    u_bar = u + (weights.unsqueeze(-1) * turn).sum(-2)  # Σ_k w_k ū_k with Σ_k w_k = 1
     speed = u_bar.norm(dim=-1, keepdim=True)
     return u_bar * (SPEED_CAP / speed.clamp_min(SPEED_CAP))
 
