@@ -109,6 +109,7 @@ def write_task_summary(results_dir: str | os.PathLike, task: str, main_operator:
         "\n## Every pretraining seed, pooled over presets\n",
         summary_table(val, task, by="pretrain_seed"),
         *_constant_sweep_section(episodes, task),
+        *_overlap_section(val),
         *_theta_section(results_dir),
         *_calibration_section(results_dir),
         "",
@@ -149,6 +150,43 @@ def _constant_sweep_section(episodes: pd.DataFrame, task: str) -> list[str]:
             else:
                 cells.append("–")
         lines.append(f"| {operator} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def partner_overlap(validation: pd.DataFrame) -> pd.DataFrame:
+    """Per operator, the share of scenarios each partner lands alone, both land and either lands.
+
+    Pairs the ``operator`` and ``machine`` rows of the same (operator, pretraining seed,
+    scenario). ``either`` is an oracle's score: handing each whole episode to a partner
+    that succeeds on it alone (knowing the outcome) reaches it, so an arbiter above it
+    must combine the partners *within* an episode, and a target above it cannot be met by
+    choosing whom to trust per episode.
+    """
+    alone = validation[validation["method"].isin(["operator", "machine"])]
+    wide = alone.pivot_table(index=["operator", "pretrain_seed", "seed"], columns="method", values="success")
+    if not {"operator", "machine"} <= set(wide.columns):
+        return pd.DataFrame(columns=["operator", "machine", "both", "either", "scenarios"])
+    wide = wide.dropna()
+    human, machine = wide["operator"] > 0, wide["machine"] > 0
+    shares = pd.DataFrame({"operator": human, "machine": machine, "both": human & machine,
+                           "either": human | machine}).astype(float)
+    grouped = shares.groupby(level="operator")
+    return grouped.mean().assign(scenarios=grouped.size())
+
+
+def _overlap_section(validation: pd.DataFrame) -> list[str]:
+    overlap = partner_overlap(validation)
+    if overlap.empty:
+        return []
+    lines = ["\n## Whether the partners complement each other (validation, pooled over pretraining seeds)\n",
+             "Success of each partner alone on the same scenarios, of both, and of either: *either* is an "
+             "oracle that hands each whole episode to a partner that lands it alone. Above it an arbiter "
+             "must combine the partners within an episode.\n",
+             "| operator | operator alone | machine alone | both | either (per-scenario oracle) | scenarios |",
+             "|---|---|---|---|---|---|"]
+    for operator, row in overlap.iterrows():
+        shares = " | ".join(f"{row[c]:.2f}" for c in ("operator", "machine", "both", "either"))
+        lines.append(f"| {operator} | {shares} | {int(row['scenarios'])} |")
     return lines
 
 
