@@ -157,15 +157,8 @@ def _scaled_log_gamma(gamma: Tensor, d_surface: Tensor, d_goal: Tensor) -> Tenso
     return log_gamma * exponent.exp()
 
 
-def _modulation_terms(
-    position: Tensor,
-    goal: Tensor,
-    centre: Tensor,
-    radius: Tensor,
-    rho0: Tensor,
-    sigma0: Tensor,
-    tau: Tensor,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+def _modulation_terms(position: Tensor, goal: Tensor, centre: Tensor, radius: Tensor, rho0: Tensor,
+                      sigma0: Tensor, tau: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The parts of ``M = I - r n_hat n_hat^T + s t n_hat^T``: ``(Γ, n_hat, t, r, s)``.
 
     ``r = 1/Γ^(1/ρ)`` (repulsive), ``s = 1/Γ^(1/σ)`` (tangential), ``t = cos(τ) t1_hat +
