@@ -165,6 +165,8 @@ def _modulation_terms(position: Tensor, goal: Tensor, centre: Tensor, radius: Te
     sin(τ) t2_hat`` (a unit vector: ``||t|| = 1``, so the paper's ``t n^T / (||t|| ||n||)``
     is ``t n_hat^T``). Shapes as :func:`modulation_matrix`'s arguments.
     """
+    # Γ and n as sphere_gamma / sphere_normal define them, from one offset: this runs 30 times
+    # per decision of the UAV operator's look-ahead, and calling both would compute it thrice
     offset = position - centre
     distance_sq = offset.square().sum(-1)
     gamma = distance_sq / radius.square()
