@@ -153,7 +153,7 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
         if cfg.optim.lr_schedule == "linear":  # to 0 over the episode budget (resumes from run.episodes)
             for group in optim.param_groups:
                 group["lr"] = cfg.optim.lr * (1.0 - run.episodes / run.total_episodes)
-        buffer.extend(batch.reshape(-1).select("observation", "action", "next").clone())  # env-scale rewards
+        buffer.extend(batch.reshape(-1).select(*q_loss.in_keys, strict=False).clone())  # what the Q loss reads; env-scale rewards
         metrics = actor_critic_step(cfg, actor_critic_loss, optim, batch)
         for _ in range(cfg.qcritic.updates_per_batch):  # >= 1 (dcsc_torchrl.config.LIMITS)
             q = q_loss(buffer.sample())["loss_qvalue"]

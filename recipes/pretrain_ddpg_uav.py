@@ -84,7 +84,7 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
 
     def update(batch) -> dict[str, float]:
         nonlocal updates_owed
-        buffer.extend(batch.reshape(-1).select("observation", "action", "next").clone())
+        buffer.extend(batch.reshape(-1).select(*loss.in_keys, strict=False).clone())  # what the loss reads
         exploration.step(batch.numel())
         metrics: dict[str, float] = {}  # no update yet: the loss columns stay empty
         if len(buffer) < cfg.collector.init_random_frames:
