@@ -46,6 +46,27 @@ class PolicyBlend(nn.Module):
         return blended
 
 
+def plays_operator_alone(beta: float, *, discrete: bool, mode: bool) -> bool:
+    """Whether Eq. 14 at a constant ``beta`` acts exactly as the operator alone, on every frame.
+
+    ``beta = 0`` always: the blend is the operator's action (continuous) or the point mass
+    on its key (discrete). With a discrete action taken as the mixture's mode (``mode``),
+    also every ``beta < 1/2``: the operator's key ``h`` has probability
+    ``(1 - beta) + beta p_m(h) >= 1 - beta > 1/2 > beta >= beta p_m(k)`` for every other key
+    ``k``, so the mode is the operator's key whatever the machine's probabilities. Drawing
+    the action instead (Algorithm 1) gives the machine's keys a chance at any ``beta > 0``.
+    A protocol can reuse the operator-alone run for such a ``beta`` instead of replaying it.
+
+    Examples:
+        >>> [b for b in (0.0, 0.2, 0.5, 0.8) if plays_operator_alone(b, discrete=True, mode=True)]
+        [0.0, 0.2]
+        >>> plays_operator_alone(0.2, discrete=True, mode=False), plays_operator_alone(0.2, discrete=False, mode=True)
+        (False, False)
+    """
+    as_blended = float(torch.tensor(beta, dtype=torch.float32))  # the blend's precision
+    return as_blended == 0.0 or (discrete and mode and as_blended < 0.5)
+
+
 class SharedPolicyModule(TensorDictSequential):
     """DC-SC's shared policy (Eq. 14) as one TensorDict module, ready for a Collector.
 

@@ -41,7 +41,7 @@ from dcsc_torchrl.methods import (
 )
 from dcsc_torchrl.networks import authority_critic
 from dcsc_torchrl.online import WARMUP_TARGETS, OnlineLearner, make_online_learner
-from dcsc_torchrl.policy import SharedPolicyModule
+from dcsc_torchrl.policy import SharedPolicyModule, plays_operator_alone
 from dcsc_torchrl.tasks import Task
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperator, HumanOperatorTransform
 
@@ -265,6 +265,17 @@ class _Cell:
         env.close()
         return result
 
+    def replay(self, operator_alone: EpisodeBatch, name: str, beta: float) -> EpisodeBatch:
+        """The episodes of a constant ``beta`` that plays the operator alone exactly
+        (:func:`~dcsc_torchrl.policy.plays_operator_alone`): the operator's run's, not replayed.
+
+        Every run seeds torch and the operator itself, and the env is deterministic given the
+        actions, so playing it again would give these episodes; only ``mean_beta`` is the
+        arbiter's own."""
+        if self.progress is not None:
+            self.progress(f"validation: {name} (the operator's run: beta {beta} plays the operator alone)")
+        return EpisodeBatch([{**row, "mean_beta": float(beta)} for row in operator_alone.rows])
+
     def rows(self, phase: str, method: str, seeds: Sequence[int], result: EpisodeBatch,
              **extra: Any) -> list[dict[str, Any]]:
         group = self.protocol.group_size
@@ -309,7 +320,10 @@ def run_cell(
        (Algorithm 1);
     3. **validate** — every method on ``scenarios.validation`` (groups of
        ``protocol.group_size``); the learned arbiters keep learning online; ``constant``
-       runs once per beta of ``arbiter.constant_betas``; ``dcsc_frozen`` starts from the
+       runs once per beta of ``arbiter.constant_betas``, except that a beta which plays
+       the operator alone exactly (beta 0; with the discrete mode every beta < 1/2,
+       :func:`~dcsc_torchrl.policy.plays_operator_alone`) takes the episodes of the
+       ``operator`` run when that ran before it; ``dcsc_frozen`` starts from the
        ``arbiter.form`` arbiter's theta after collaboration, its confidences frozen at
        their collaboration means.
 
@@ -395,17 +409,24 @@ def run_cell(
     # 3. validate every method
     traces: list[dict[str, Any]] = []
     validation = scenarios.validation
+    operator_alone: EpisodeBatch | None = None  # the operator's validation run, once played
     for method in methods:
         kind = METHODS[method].kind
         if kind == "sweep":
             for beta in arbiter.constant_betas:
-                result = cell.play("validation", f"constant/{beta}", validation,
-                                   cell.policy("constant", constant_beta=beta))
+                if operator_alone is not None and plays_operator_alone(
+                        beta, discrete=task.discrete, mode=protocol.shared_action == "mode"):
+                    result = cell.replay(operator_alone, f"constant/{beta}", beta)
+                else:
+                    result = cell.play("validation", f"constant/{beta}", validation,
+                                       cell.policy("constant", constant_beta=beta))
                 episodes += cell.rows("validation", "constant", validation, result, constant_beta=float(beta))
             continue
         learner = learners.get(method)
         policy = cell.policy(method) if learner is None else learner.policy
         result = cell.play("validation", method, validation, policy, update=learner, trace=trace)
+        if method == "operator":
+            operator_alone = result
         episodes += cell.rows("validation", method, validation, result)
         traces += cell.traced("validation", method, validation, result)
     theta = [{**base, "method": method,

@@ -164,3 +164,52 @@ def test_an_unknown_shared_action_is_refused():
 
     with pytest.raises(ConfigError, match="protocol.shared_action must be one of sample, mode, got 'argmax'"):
         task_config(get_task("lunarlander"), ["protocol.shared_action=argmax"])
+
+
+def test_plays_operator_alone_holds_even_when_the_machine_puts_all_its_mass_on_another_key():
+    """Below half the authority the mode is the operator's key even against a machine
+    certain of another key (its probabilities exactly 1 and 0 in float32); at 1/2 it ties."""
+    from tensordict import TensorDict
+    from torchrl.data import OneHot
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from dcsc_torchrl.arbiters import ConstantArbiter
+    from dcsc_torchrl.machine import MCDropoutPolicy
+    from dcsc_torchrl.policy import SharedPolicyModule, plays_operator_alone
+
+    net = torch.nn.Sequential(torch.nn.Linear(9, 4), torch.nn.Dropout(0.1))
+    with torch.no_grad():
+        net[0].weight.zero_()
+        net[0].bias.copy_(torch.tensor([100.0, -100.0, -100.0, -100.0]))  # p_m = (1, 0, 0, 0) exactly
+    human = torch.eye(4)[torch.arange(64) % 3 + 1].long()  # never the machine's key
+    frames = TensorDict({"observation": torch.randn(64, 9), "human_action": human,
+                         "human_confidence": torch.rand(64, 1)}, [64])
+    for beta in (0.0, 0.1, 0.25, 0.4, 0.49, 0.5, 0.6):
+        policy = SharedPolicyModule(MCDropoutPolicy(net, num_samples=4), ConstantArbiter(beta, 1), OneHot(4))
+        with set_exploration_type(ExplorationType.MODE):
+            action = policy(frames.clone())["action"]
+        assert plays_operator_alone(beta, discrete=True, mode=True) == (action == human).all().item(), beta
+
+
+def test_a_constant_beta_that_plays_the_operator_alone_takes_the_operators_episodes():
+    """The sweep's replay of the operator's run gives the rows a played run gives."""
+    from dcsc_torchrl.protocol import run_cell
+    from recipes.shared_control import cell_settings
+
+    task = get_task("lunarlander")
+    cfg = task_config(task, ["scenarios.operator_runs=1", "scenarios.machine_alone_runs=1",
+                             "scenarios.validation_scenarios=3", "protocol.group_size=1", "protocol.max_steps=80",
+                             "protocol.shared_action=mode", "arbiter.constant_betas=[0.0,0.3,0.6]"], quick=True)
+    torch.manual_seed(0)
+    machine, critic = task.make_networks({"hidden": [16], "actor_dropout": 0.1})
+
+    def constant_rows(methods: tuple[str, ...]) -> pd.DataFrame:
+        cell = run_cell(task, task.make_operator("noisy"), machine, critic, operator_name="noisy", pretrain_seed=0,
+                        methods=methods, **cell_settings(cfg))
+        rows = pd.DataFrame(cell.episodes)
+        return rows[(rows["phase"] == "validation") & (rows["method"] == "constant")].reset_index(drop=True)
+
+    replayed, played = constant_rows(("operator", "constant")), constant_rows(("constant",))
+    pd.testing.assert_frame_equal(replayed.drop(columns="mean_beta"), played.drop(columns="mean_beta"))
+    assert replayed["mean_beta"].tolist() == pytest.approx(played["mean_beta"].tolist())
+    assert sorted(replayed["constant_beta"].unique()) == [0.0, 0.3, 0.6]
