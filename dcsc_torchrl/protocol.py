@@ -265,13 +265,13 @@ class _Cell:
         env.close()
         return result
 
-    def replay(self, operator_alone: EpisodeBatch, name: str, beta: float) -> EpisodeBatch:
-        """The episodes of a constant ``beta`` that plays the operator alone exactly
-        (:func:`~dcsc_torchrl.policy.plays_operator_alone`): the operator's run's, not replayed.
+    def reuse_operator_run(self, operator_alone: EpisodeBatch, name: str, beta: float) -> EpisodeBatch:
+        """The operator's validation episodes as those of a constant ``beta`` that plays the
+        operator alone exactly (:func:`~dcsc_torchrl.policy.plays_operator_alone`).
 
-        Every run seeds torch and the operator itself, and the env is deterministic given the
-        actions, so playing it again would give these episodes; only ``mean_beta`` is the
-        arbiter's own."""
+        Playing that ``beta`` would give the same episodes: every run seeds torch and the
+        operator itself, and the env is deterministic given the actions. Only ``mean_beta``
+        is the arbiter's own."""
         if self.progress is not None:
             self.progress(f"validation: {name} (the operator's run: beta {beta} plays the operator alone)")
         return EpisodeBatch([{**row, "mean_beta": float(beta)} for row in operator_alone.rows])
@@ -416,7 +416,7 @@ def run_cell(
             for beta in arbiter.constant_betas:
                 if operator_alone is not None and plays_operator_alone(
                         beta, discrete=task.discrete, mode=protocol.shared_action == "mode"):
-                    result = cell.replay(operator_alone, f"constant/{beta}", beta)
+                    result = cell.reuse_operator_run(operator_alone, f"constant/{beta}", beta)
                 else:
                     result = cell.play("validation", f"constant/{beta}", validation,
                                        cell.policy("constant", constant_beta=beta))
