@@ -192,7 +192,7 @@ def test_plays_operator_alone_holds_even_when_the_machine_puts_all_its_mass_on_a
 
 
 def test_a_constant_beta_that_plays_the_operator_alone_takes_the_operators_episodes():
-    """The sweep's replay of the operator's run gives the rows a played run gives."""
+    """The operator's episodes reused for the sweep's beta 0 and 0.3 are the rows playing them gives."""
     from dcsc_torchrl.protocol import run_cell
     from recipes.shared_control import cell_settings
 
