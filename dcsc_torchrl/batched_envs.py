@@ -39,7 +39,9 @@ class TargetLunarLanderBatch(EnvBase):
     TorchRL's ``GymWrapper`` (tested frame by frame): ``set_seed(s)`` resets env ``i`` with
     seed ``s + i``, every later reset draws from that env's own RNG, and an episode is
     truncated after ``max_steps`` frames (the id's ``TimeLimit``, 1000). A done env is reset
-    when the collector (or ``rollout``) asks for it through ``"_reset"``.
+    when the collector (or ``rollout``) asks for it through ``"_reset"``. A step whose input
+    holds ``"_step"`` (TorchRL's partial steps) moves only the envs it marks True; the
+    others hold (same observation, reward 0, not done, their frame count unchanged).
 
     Args:
         num_envs: the envs stepped by one call.
@@ -104,14 +106,16 @@ class TargetLunarLanderBatch(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         actions = tensordict.get("action").argmax(-1).tolist()
         n = len(self._envs)
-        reward = np.empty(n, dtype=np.float32)
-        terminated = np.empty(n, dtype=bool)
-        flags = {key: np.empty(n, dtype=bool) for key in LUNAR_INFO_KEYS}
-        for i, (env, action) in enumerate(zip(self._envs, actions, strict=True)):
-            self._observation[i], reward[i], terminated[i], _, info = env.step(action)
+        stepped = tensordict.get("_step", None)  # TorchRL's partial steps: the others hold
+        stepped = np.ones(n, dtype=bool) if stepped is None else stepped.reshape(n).numpy(force=True)
+        reward = np.zeros(n, dtype=np.float32)
+        terminated = np.zeros(n, dtype=bool)
+        flags = {key: np.zeros(n, dtype=bool) for key in LUNAR_INFO_KEYS}
+        for i in stepped.nonzero()[0]:
+            self._observation[i], reward[i], terminated[i], _, info = self._envs[i].step(actions[i])
             for key, flag in flags.items():
                 flag[i] = info[key]
-        self._elapsed += 1
+        self._elapsed += stepped
         terminated_tensor = torch.from_numpy(terminated).unsqueeze(-1)
         truncated = torch.from_numpy(self._elapsed >= self.max_steps).unsqueeze(-1)
         return TensorDict(

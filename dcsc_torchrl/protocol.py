@@ -43,7 +43,12 @@ from dcsc_torchrl.networks import authority_critic
 from dcsc_torchrl.online import WARMUP_TARGETS, OnlineLearner, make_online_learner
 from dcsc_torchrl.policy import SharedPolicyModule, plays_operator_alone
 from dcsc_torchrl.tasks import Task
-from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperator, HumanOperatorTransform
+from dcsc_torchrl.transforms import (
+    FirstEpisodeOnly,
+    HumanConfidenceTransform,
+    HumanOperator,
+    HumanOperatorTransform,
+)
 
 
 def check_betas(name: str, betas: Sequence[float]) -> None:
@@ -239,8 +244,10 @@ class _Cell:
         self.observation_size = spec_env.observation_spec["observation"].shape[-1]
         spec_env.close()
 
-    def make_env(self, seeds: Sequence[int], operator_seed: int) -> TransformedEnv:
+    def make_env(self, seeds: Sequence[int], operator_seed: int, first_episode_only: bool = False) -> TransformedEnv:
         transforms = [HumanOperatorTransform(self.operator, seed=operator_seed), HumanConfidenceTransform(**self.human)]
+        if first_episode_only:
+            transforms.insert(0, FirstEpisodeOnly())
         return self.task.make_envs(list(seeds), self.protocol.max_steps, transforms)
 
     def policy(self, method: str, arbiter: Arbiter | None = None, **kwargs: Any) -> SharedPolicyModule:
@@ -259,7 +266,9 @@ class _Cell:
             self.progress(f"{phase}: {method}")
         seed = self.protocol.seed
         torch.manual_seed(run_seed(seed, self.pretrain_seed, phase, method))
-        env = self.make_env(seeds, operator_seed=operator_seed(seed, self.pretrain_seed, seeds[0]))
+        # a run that learns nothing reads only each env's first episode: the envs done are held
+        env = self.make_env(seeds, operator_seed=operator_seed(seed, self.pretrain_seed, seeds[0]),
+                            first_episode_only=update is None)
         result = run_scenarios(env, policy, self.task, rollout_length=self.protocol.rollout_length, update=update,
                                trace=trace, exploration_type=self.protocol.exploration_type)
         env.close()

@@ -7,7 +7,9 @@ the operator lives on the environment side:
   action on every frame and writes ``human_action``, ``human_rt``, ``human_decided``;
 - :class:`HumanConfidenceTransform` keeps the operator's knowledge level per
   environment (Eq. 6, updated on decision frames) and writes ``knowledge`` and
-  ``human_confidence`` (Eq. 9).
+  ``human_confidence`` (Eq. 9);
+- :class:`FirstEpisodeOnly` stops stepping an environment once its first episode is
+  over (TorchRL's partial steps), for runs that record one episode per environment.
 """
 
 from __future__ import annotations
@@ -38,7 +40,12 @@ class HumanOperator(Protocol):
     frame, where the operator must drop what it held). It returns a TensorDict with
     ``human_action`` (one-hot ``[*batch, n]`` or ``[*batch, d]``), ``human_rt``
     (``[*batch, 1]`` seconds) and ``human_decided`` (``[*batch, 1]`` bool: a new
-    decision on this frame).
+    decision on this frame). Where a call concerns only part of the batch, the
+    TensorDict also holds ``"_step"`` (``[*batch]`` bool): on a partial reset True for
+    the envs reset, on a partial step (TorchRL's partial steps, e.g. under
+    :class:`FirstEpisodeOnly`) True for the envs stepped. For the others the call is
+    no new frame: their answer is not used, and an operator that keeps time per env
+    (:class:`~dcsc_torchrl.humans.traits.SimulatedHuman`) leaves them where they were.
     """
 
     def reset(self, seed: int | None) -> None:
@@ -114,7 +121,8 @@ class HumanOperatorTransform(Transform):
         self.operator.reset(seed)
         self._seeded = True
 
-    def _ask(self, tensordict: TensorDictBase, is_init: torch.Tensor) -> TensorDictBase:
+    def _ask(self, tensordict: TensorDictBase, is_init: torch.Tensor,
+             stepped: torch.Tensor | None = None) -> TensorDictBase:
         if not self._seeded:
             self.set_seed(self.seed)
         for key in self.in_keys:
@@ -123,6 +131,8 @@ class HumanOperatorTransform(Transform):
                 check_finite(f"the env's {key!r} (before the operator saw it)", observation)
         query = tensordict.copy()
         query.set("is_init", is_init)
+        if stepped is not None:
+            query.set("_step", stepped.reshape(query.batch_size))
         answer = self.operator(query)
         action_key, rt_key, decided_key = self.out_keys
         operator = type(self.operator).__name__
@@ -158,11 +168,13 @@ class HumanOperatorTransform(Transform):
         return tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        return self._ask(tensordict_reset, _reset_mask(self, tensordict, tensordict_reset.batch_size))
+        reset = _reset_mask(self, tensordict, tensordict_reset.batch_size)
+        # a partial reset is no new frame for the envs that go on: only those reset take part
+        return self._ask(tensordict_reset, reset, None if reset.all() else reset)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         is_init = torch.zeros(*next_tensordict.batch_size, 1, dtype=torch.bool, device=next_tensordict.device)
-        return self._ask(next_tensordict, is_init)
+        return self._ask(next_tensordict, is_init, tensordict.get("_step", None))
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         self._action_shape_dtype = None  # the specs are being (re)built
@@ -281,3 +293,48 @@ class HumanConfidenceTransform(Transform):
             input_spec["full_state_spec"] = Composite(shape=input_spec.shape, device=input_spec.device)
         input_spec["full_state_spec"][self.out_keys[0]] = self._knowledge_spec(input_spec.shape, input_spec.device)
         return input_spec
+
+
+class FirstEpisodeOnly(Transform):
+    """Steps each env of a batch through its first episode only, then holds it.
+
+    A batch of scenarios played until the last one ends (one recorded episode per env,
+    :func:`~dcsc_torchrl.episodes.run_scenarios`) would otherwise go on stepping the
+    envs already done: a collector resets them and they play a second episode nobody
+    reads. Once an env's first episode is done, this transform leaves it out of every
+    later step through TorchRL's partial steps: it writes ``"_step"`` (False for that
+    env) into the step input, as :class:`~torchrl.envs.transforms.ConditionalSkip`
+    does, and the batched envs of this project step only the envs it marks (a held env
+    keeps its state, reward 0, not done), while :class:`HumanOperatorTransform` passes
+    it on to the operator, which skips its planning there. The envs still running
+    see exactly what they would without it: the policy still acts on the whole batch and
+    every random stream is per env.
+
+    For runs whose later frames matter (DC-SC's online updates learn from every frame)
+    leave it out. A full reset (no ``"_reset"`` entry) starts every env afresh.
+
+    Examples:
+        >>> from dcsc_torchrl.batched_envs import make_uav_env
+        >>> env = make_uav_env(2, scenario_seeds=[0, 1], max_steps=3, transforms=[FirstEpisodeOnly()])
+        >>> env.rollout(5, break_when_any_done=False)["next", "step_count"].squeeze(-1)[0].tolist()
+        [1, 2, 3, 4, 5]
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._over: torch.Tensor | None = None
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        full = tensordict is None or tensordict.get(self.parent.reset_keys[0], None) is None
+        if full or self._over is None:
+            self._over = torch.zeros(tensordict_reset.batch_size, dtype=torch.bool, device=tensordict_reset.device)
+        return tensordict_reset
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        self._over = self._over | next_tensordict.get("done").reshape(self._over.shape)
+        return next_tensordict
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if self._over is not None and self._over.any():
+            tensordict.set("_step", tensordict.get("_step", True) & ~self._over)
+        return tensordict

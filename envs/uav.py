@@ -767,13 +767,17 @@ class UAVPathPlanningEnv(EnvBase):
             flag[rows] = False
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        reward = self.advance(tensordict.get("action"))
+        reward = self.advance(tensordict.get("action"), tensordict.get("_step", None))
         out = self._output()
         out.set("reward", reward.unsqueeze(-1))
         return out
 
-    def advance(self, action: Tensor) -> Tensor:
-        """Moves every scenario one step in place and returns the rewards ``[N]``.
+    _MOVING_STATE = ("_position", "_steps", "_path_length", "_success", "_collision", "_out_of_bounds",
+                     "_truncated", "_centres", "_velocities")
+    """What one step changes (:meth:`advance`), and a held scenario keeps."""
+
+    def advance(self, action: Tensor, stepped: Tensor | None = None) -> Tensor:
+        """Moves every scenario (or those of ``stepped``) one step in place and returns the rewards ``[N]``.
 
         The physics of :meth:`step` without TorchRL's bookkeeping (no done handling, no
         reset); :class:`UAVPathPlanningGymEnv` drives it directly, then reads
@@ -781,7 +785,17 @@ class UAVPathPlanningEnv(EnvBase):
 
         Args:
             action: ``[N, 3]``, clipped to ``[0, ACTION_HIGH]``.
+            stepped: ``[N]`` bool (TorchRL's partial steps, ``"_step"``), ``None`` for all:
+                the scenarios left out keep their state, time included, and earn 0.
         """
+        held = None if stepped is None else (~stepped.reshape(-1)).nonzero().squeeze(-1)
+        kept = {} if held is None else {name: getattr(self, name)[held].clone() for name in self._MOVING_STATE}
+        reward = self._move(action)
+        for name, value in kept.items():
+            getattr(self, name)[held] = value
+        return reward if held is None else reward.index_fill(0, held, 0.0)
+
+    def _move(self, action: Tensor) -> Tensor:
         rho0, sigma0, tau = action.clamp(0.0, ACTION_HIGH).unbind(-1)
         position, goal = self._position, self._goal
         radii = self._params[..., ObstacleParam.RADIUS]

@@ -168,9 +168,10 @@ def _mix(x: torch.Tensor) -> torch.Tensor:
 class EnvStreams:
     """One counter-based random stream per environment (SplitMix64 keyed by seed and env).
 
-    Draw ``j`` of call ``c`` for env ``i`` is a hash of ``(seed, i, c, j)``, so env
-    ``i`` gets the same numbers whatever the batch it sits in (its size, its shape, its
-    other envs), on any device, in one vectorised op.
+    Draw ``j`` of env ``i``'s call ``c`` is a hash of ``(seed, i, c, j)``, where ``c``
+    counts the calls in which env ``i`` took part (``active``), so env ``i`` gets the
+    same numbers whatever the batch it sits in (its size, its shape, its other envs and
+    when they take part), on any device, in one vectorised op.
 
     Args:
         seed: the operator's seed.
@@ -185,18 +186,26 @@ class EnvStreams:
 
     def __init__(self, seed: int, draws: int) -> None:
         self.draws = draws
-        self.calls = 0
+        self.calls = torch.zeros(0, dtype=torch.int64)
+        """Per env, the calls it took part in."""
         self._key = int(_mix(torch.tensor(_signed(int(seed) % (1 << 64)))))
 
-    def uniform(self, batch_shape: torch.Size, device: torch.device | None = None) -> torch.Tensor:
-        """The next ``[*batch_shape, draws]`` uniforms in [0, 1) (float64), one call's worth."""
+    def uniform(self, batch_shape: torch.Size, device: torch.device | None = None,
+                active: torch.Tensor | None = None) -> torch.Tensor:
+        """The next ``[*batch_shape, draws]`` uniforms in [0, 1) (float64), one call's worth.
+
+        Only the envs of ``active`` (bool, ``batch_shape``; default all) take part: the
+        others get numbers too, but their stream does not move on.
+        """
         n_envs = math.prod(batch_shape)
-        env = torch.arange(n_envs, dtype=torch.int64, device=device).reshape(*batch_shape, 1)
+        if len(self.calls) < n_envs:
+            self.calls = torch.cat([self.calls, self.calls.new_zeros(n_envs - len(self.calls))])
+        env = torch.arange(n_envs, dtype=torch.int64, device=device).unsqueeze(-1)
         draw = torch.arange(self.draws, dtype=torch.int64, device=device)
         env_key = _mix(self._key + _GOLDEN * env)
-        counter = self.calls * self.draws + draw
-        bits = _mix(env_key + _GOLDEN * (counter + 1))
-        self.calls += 1
+        counter = self.calls[:n_envs].to(device).unsqueeze(-1) * self.draws + draw
+        bits = _mix(env_key + _GOLDEN * (counter + 1)).reshape(*batch_shape, self.draws)
+        self.calls[:n_envs] += 1 if active is None else active.reshape(n_envs).to(self.calls.device, torch.int64)
         return _shift_right(bits, 11).to(torch.float64) * 2.0**-53
 
 
@@ -216,6 +225,13 @@ class SimulatedHuman(ABC):
     since. A plan is one choice held until the next decision, or one choice per frame of
     the coming interval (an open-loop key sequence; a lapse holds its last key). Between
     decisions ``human_decided`` is False and the last decision's RT is reported.
+
+    Each env keeps its own clock: a call advances only the envs it steps. Where the
+    TensorDict holds ``"_step"`` (TorchRL's partial steps; :class:`HumanOperatorTransform`
+    also sends it on a partial reset, True for the envs reset), an env marked False
+    stands still: it neither sees a frame nor decides, its held key, its plan and its
+    random stream stay where they were, and it answers with its held key. So an env
+    behaves the same whichever other envs of its batch finish and restart, and when.
 
     Every random number comes from :class:`EnvStreams`, so an env behaves the same in
     any batch. Subclasses say what a choice is (``n_choices``, :meth:`action`), how the
@@ -243,7 +259,6 @@ class SimulatedHuman(ABC):
         self.frame_seconds = float(frame_seconds)
         self.streams: EnvStreams | None = None  # seeded by reset, or at the first call
         self._state: TensorDict | None = None
-        self._slot = 0  # where the current frame sits in the ring of past frames
 
     @classmethod
     def from_preset(cls: type[_Operator], name: str, **kwargs: Any) -> _Operator:
@@ -307,25 +322,28 @@ class SimulatedHuman(ABC):
                 "rt": torch.zeros(n_envs),
                 "wait": torch.zeros(n_envs, dtype=torch.int64),
                 "age": torch.zeros(n_envs, dtype=torch.int64),
+                "slot": torch.zeros(n_envs, dtype=torch.int64),  # where the env's current frame sits in the ring
                 "seen": frame.unsqueeze(1).expand(n_envs, self.memory_frames).clone(),
             },
             [n_envs],
             device=frame.device,
         )
 
-    def _remember(self, frame: TensorDictBase, restart: torch.Tensor) -> None:
-        """Stores the current frame in the ring of past frames; counts frames since reset."""
+    def _remember(self, frame: TensorDictBase, restart: torch.Tensor, active: torch.Tensor) -> None:
+        """Stores the current frame of the ``active`` envs in their ring of past frames; counts
+        their frames since reset."""
         state = self._state
-        self._slot = (self._slot + 1) % self.memory_frames
-        state["seen"][:, self._slot] = frame
-        state["age"] = torch.where(restart, 0, state["age"] + 1)
+        state["slot"] = torch.where(active, (state["slot"] + 1) % self.memory_frames, state["slot"])
+        rows = active.nonzero().squeeze(-1)
+        state["seen"][rows, state["slot"][rows]] = frame[rows]
+        state["age"] = torch.where(restart, 0, state["age"] + active.long())
 
     def _perceived(self, rows: torch.Tensor, rt: torch.Tensor) -> TensorDictBase:
         """What the deciding envs ``rows`` saw one RT ago, carried forward by :meth:`anticipate`."""
         state = self._state
         delay = torch.round(rt / self.frame_seconds).long()
         delay = torch.minimum(delay.clamp_max(self.memory_frames - 1), state["age"][rows])
-        slots = (self._slot - delay) % self.memory_frames
+        slots = (state["slot"][rows] - delay) % self.memory_frames
         since = torch.arange(int(delay.max()), device=delay.device)
         issued_slots = (slots.unsqueeze(-1) + since) % self.memory_frames
         issued = state["issued"][rows.unsqueeze(-1), issued_slots]
@@ -370,16 +388,17 @@ class SimulatedHuman(ABC):
         frame = flat.select(*self.in_keys)
         if self.streams is None:
             self.reset(None)
+        stepped = tensordict.get("_step", None)  # TorchRL's partial steps: the others stand still
+        active = torch.ones_like(restart) if stepped is None else stepped.reshape(n_envs) | restart
         if self._state is None or self._state.batch_size[0] != n_envs:
             self._state = self._fresh_state(frame)
-            self._slot = 0
-            restart = torch.ones_like(restart)
+            restart = active = torch.ones_like(restart)
         state = self._state
-        self._remember(frame, restart)
-        u = self.streams.uniform(torch.Size([n_envs]), device)
+        self._remember(frame, restart, active)
+        u = self.streams.uniform(torch.Size([n_envs]), device, active)
 
         wait = torch.where(restart, 0, state["wait"])
-        decide = wait <= 0
+        decide = (wait <= 0) & active
         if decide.any():
             rows = decide.nonzero().squeeze(-1)
             u_rows = u[rows]
@@ -399,11 +418,11 @@ class SimulatedHuman(ABC):
             lapse = torch.round(excess / self.frame_seconds).long()
             wait[rows] = period + lapse
         step = state["since"].clamp_max(self.decision_period - 1).unsqueeze(-1)
-        choice = state["plan"].gather(-1, step).squeeze(-1)
+        choice = torch.where(active, state["plan"].gather(-1, step).squeeze(-1), state["choice"])
         state["choice"] = choice
-        state["issued"][:, self._slot] = choice
-        state["since"] = state["since"] + 1
-        state["wait"] = wait - 1
+        state["issued"].scatter_(1, state["slot"].unsqueeze(-1), choice.unsqueeze(-1))
+        state["since"] = state["since"] + active.long()
+        state["wait"] = wait - active.long()
 
         return TensorDict(
             {
