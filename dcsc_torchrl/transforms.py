@@ -316,8 +316,9 @@ class FirstEpisodeOnly(Transform):
     Examples:
         >>> from dcsc_torchrl.batched_envs import make_uav_env
         >>> env = make_uav_env(2, scenario_seeds=[0, 1], max_steps=3, transforms=[FirstEpisodeOnly()])
-        >>> env.rollout(5, break_when_any_done=False)["next", "step_count"].squeeze(-1)[0].tolist()
-        [1, 2, 3, 4, 5]
+        >>> times = env.rollout(5, break_when_any_done=False)["next", "time"][0].squeeze(-1)
+        >>> [round(t, 1) for t in times.tolist()]  # three steps, the reset, then held there
+        [0.1, 0.2, 0.3, 0.0, 0.0]
     """
 
     def __init__(self) -> None:

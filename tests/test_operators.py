@@ -105,6 +105,50 @@ def test_simulated_pilot_env_i_behaves_the_same_in_any_batch(make):
             torch.testing.assert_close(a[key][0], d[key])
 
 
+def test_an_env_restarting_is_no_new_frame_for_the_others():
+    """A partial reset reaches the operator with ``"_step"`` True for the envs reset only
+    (HumanOperatorTransform): env 0 answers exactly as it would alone, while envs 1 and 2
+    restart every few frames; the same calls without ``"_step"`` would age env 0 a frame each."""
+    torch.manual_seed(0)
+    frames = [torch.randn(3, 9) * 0.5 for _ in range(30)]
+    batch, unmarked, alone = (SimulatedPilot.from_preset("distracted") for _ in range(3))
+    for op in (batch, unmarked, alone):
+        op.reset(3)
+    restart = torch.tensor([[False], [True], [True]])
+    diverged = False
+    for t, obs in enumerate(frames):
+        a, u, d = batch(query(obs, t == 0)), unmarked(query(obs, t == 0)), alone(query(obs[0], t == 0))
+        for key in ("human_action", "human_rt", "human_decided"):
+            torch.testing.assert_close(a[key][0], d[key])
+        diverged |= not (u["human_action"][0].equal(d["human_action"]) and u["human_rt"][0].equal(d["human_rt"]))
+        if t % 4 == 2:  # envs 1 and 2 restart between two frames
+            batch(query(obs, restart).set("_step", restart.squeeze(-1)))
+            unmarked(query(obs, restart))
+    assert diverged
+
+
+def test_an_env_left_out_of_a_step_stands_still():
+    """``"_step"`` False (TorchRL's partial steps): env 1 neither sees the frame nor decides, and
+    then goes on exactly as if those calls had not happened."""
+    torch.manual_seed(1)
+    frames = [torch.randn(2, 9) * 0.5 for _ in range(24)]
+    held = {5, 6, 7, 12, 13}
+    partly, only_its_frames = SimulatedPilot.from_preset("noisy"), SimulatedPilot.from_preset("noisy")
+    partly.reset(4)
+    only_its_frames.reset(4)
+    answers, expected = [], []
+    for t, obs in enumerate(frames):
+        stepped = torch.tensor([True, t not in held])
+        out = partly(query(obs, t == 0).set("_step", stepped))
+        if t in held:
+            assert not out["human_decided"][1].item()
+            continue
+        answers.append(out[1])
+        expected.append(only_its_frames(query(obs, t == 0))[1])
+    for key in ("human_action", "human_rt", "human_decided"):
+        torch.testing.assert_close(torch.stack([a[key] for a in answers]), torch.stack([e[key] for e in expected]))
+
+
 @pytest.mark.parametrize("preset", ["noisy", "distracted"])
 def test_simulated_pilot_is_deterministic_for_a_seed_and_differs_across_seeds(preset):
     first = lunar_rollout(SimulatedPilot.from_preset(preset), seed=1, steps=400)

@@ -151,3 +151,57 @@ def test_pipeline_runs_in_a_collector_with_batched_envs():
             assert torch.isfinite(batch[key].float()).all(), key
         assert (batch["action"].sum(-1) == 1).all()
         assert (batch["next", "human_confidence"] >= 0).all()
+
+
+# --- FirstEpisodeOnly: TorchRL's partial steps -------------------------------------
+
+
+@pytest.mark.parametrize("task_name", ["lunarlander", "uav"])
+def test_batched_envs_step_only_the_envs_of_a_partial_step(task_name):
+    """``"_step"`` False: the env keeps its state (time included), earns 0 and is not done."""
+    from dcsc_torchrl.tasks import get_task
+
+    env = get_task(task_name).make_envs([0, 1], None, [])
+    before = env.reset()
+    td = before.clone().set("action", env.full_action_spec["action"].rand()).set("_step", torch.tensor([True, False]))
+    after = env.step(td)["next"]
+    assert not after["observation"][0].equal(before["observation"][0])
+    assert after["observation"][1].equal(before["observation"][1])
+    assert after["reward"][1].item() == 0.0 and not after["done"][1].item()
+    if task_name == "uav":
+        assert after["time"][1].item() == 0.0 and after["time"][0].item() > 0.0
+
+
+def test_first_episode_only_holds_the_envs_done_and_changes_no_recorded_frame(monkeypatch):
+    """A fixed method's run with FirstEpisodeOnly records the same rows, trace and frames as
+    without it, stepping the physics only until each env's first episode ends."""
+    from dcsc_torchrl.episodes import run_scenarios
+    from dcsc_torchrl.methods import build_policy, make_arbiter
+    from dcsc_torchrl.networks import lunar_actor
+    from dcsc_torchrl.tasks import get_task
+    from dcsc_torchrl.transforms import FirstEpisodeOnly
+    from envs.target_lunar_lander import TargetLunarLander
+
+    task = get_task("lunarlander")
+    torch.manual_seed(0)
+    machine = lunar_actor([16], 0.1)
+    physics_steps = []
+    step = TargetLunarLander.step
+    monkeypatch.setattr(TargetLunarLander, "step", lambda self, action: physics_steps.append(1) or step(self, action))
+
+    def run(first_episode_only: bool):
+        transforms = [HumanOperatorTransform(task.make_operator("noisy"), seed=0), HumanConfidenceTransform()]
+        env = task.make_envs([0, 1, 2, 3], 300, [FirstEpisodeOnly(), *transforms] if first_episode_only else transforms)
+        policy = build_policy(machine, make_arbiter("constant", 1, constant_beta=0.7), env.full_action_spec["action"],
+                              discrete=True, num_samples=4, lam=0.6, delta2=1.05)
+        physics_steps.clear()
+        torch.manual_seed(1)
+        return run_scenarios(env, policy, task, rollout_length=5, trace=True), len(physics_steps)
+
+    (held, held_steps), (played, played_steps) = run(True), run(False)
+    assert len({row["steps"] for row in held.rows}) > 1  # the episodes end on different frames
+    assert held.rows == played.rows and held.trace == played.trace
+    assert all(held.frames[key].equal(played.frames[key]) for key in held.frames.keys(True, True))
+    recorded = sum(row["steps"] for row in held.rows)
+    assert recorded <= held_steps < played_steps  # at most a rollout's worth past each episode's end
+    assert held_steps <= recorded + 4 * len(held.rows)
