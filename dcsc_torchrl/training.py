@@ -158,13 +158,15 @@ def greedy_episodes(
     """One greedy episode per env: eval mode (no dropout), deterministic actions.
 
     As TorchRL's sota-implementations evaluate: under
-    ``set_exploration_type(ExplorationType.DETERMINISTIC)``, without gradients.
+    ``set_exploration_type(ExplorationType.DETERMINISTIC)``, without gradients. The
+    rollout stops once every env's first episode is over, and an env whose episode is
+    over is not stepped again (TorchRL's partial steps, which both batched envs honour).
     """
     was_training = policy.training
     policy.eval()
     try:
         with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-            rollout = env.rollout(max_steps, policy, break_when_any_done=False)
+            rollout = env.rollout(max_steps, policy, break_when_any_done=False, break_when_all_done=True)
     finally:
         policy.train(was_training)
     return first_episodes(rollout, extra_keys)
