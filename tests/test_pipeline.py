@@ -172,7 +172,7 @@ def test_batched_envs_step_only_the_envs_of_a_partial_step(task_name):
         assert after["time"][1].item() == 0.0 and after["time"][0].item() > 0.0
 
 
-def test_first_episode_only_holds_the_envs_done_and_changes_no_recorded_frame(monkeypatch):
+def test_first_episode_only_holds_the_envs_done_and_changes_no_recorded_frame(lunar_physics_steps):
     """A fixed method's run with FirstEpisodeOnly records the same rows, trace and frames as
     without it, stepping the physics only until each env's first episode ends."""
     from dcsc_torchrl.episodes import run_scenarios
@@ -180,23 +180,19 @@ def test_first_episode_only_holds_the_envs_done_and_changes_no_recorded_frame(mo
     from dcsc_torchrl.networks import lunar_actor
     from dcsc_torchrl.tasks import get_task
     from dcsc_torchrl.transforms import FirstEpisodeOnly
-    from envs.target_lunar_lander import TargetLunarLander
 
     task = get_task("lunarlander")
     torch.manual_seed(0)
     machine = lunar_actor([16], 0.1)
-    physics_steps = []
-    step = TargetLunarLander.step
-    monkeypatch.setattr(TargetLunarLander, "step", lambda self, action: physics_steps.append(1) or step(self, action))
 
     def run(first_episode_only: bool):
         transforms = [HumanOperatorTransform(task.make_operator("noisy"), seed=0), HumanConfidenceTransform()]
         env = task.make_envs([0, 1, 2, 3], 300, [FirstEpisodeOnly(), *transforms] if first_episode_only else transforms)
         policy = build_policy(machine, make_arbiter("constant", 1, constant_beta=0.7), env.full_action_spec["action"],
                               discrete=True, num_samples=4, lam=0.6, delta2=1.05)
-        physics_steps.clear()
+        lunar_physics_steps.clear()
         torch.manual_seed(1)
-        return run_scenarios(env, policy, task, rollout_length=5, trace=True), len(physics_steps)
+        return run_scenarios(env, policy, task, rollout_length=5, trace=True), len(lunar_physics_steps)
 
     (held, held_steps), (played, played_steps) = run(True), run(False)
     assert len({row["steps"] for row in held.rows}) > 1  # the episodes end on different frames

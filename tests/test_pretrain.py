@@ -279,18 +279,14 @@ def test_the_protocol_pretrains_a_missing_machine_with_its_recipe_settings(tmp_p
     assert (config["seed"], config["loss"]["algorithm"], config["ppo"]["epochs"]) == (1, "ppo", 2)
 
 
-def test_greedy_episodes_stop_with_the_last_first_episode_and_match_a_full_rollout(monkeypatch):
+def test_greedy_episodes_stop_with_the_last_first_episode_and_match_a_full_rollout(lunar_physics_steps):
     """The greedy evaluation ends once every env's first episode is over (envs done are not
     stepped again) and finds the episodes a rollout to the frame limit finds."""
     from tensordict.nn import TensorDictModule
 
     from dcsc_torchrl.batched_envs import make_lunar_env
     from dcsc_torchrl.training import first_episodes, greedy_episodes
-    from envs.target_lunar_lander import TargetLunarLander
 
-    physics_steps = []
-    step = TargetLunarLander.step
-    monkeypatch.setattr(TargetLunarLander, "step", lambda self, action: physics_steps.append(1) or step(self, action))
     torch.manual_seed(0)
     net = torch.nn.Sequential(torch.nn.Linear(9, 16), torch.nn.Tanh(), torch.nn.Linear(16, 4))
     policy = TensorDictModule(lambda obs: torch.nn.functional.one_hot(net(obs).argmax(-1), 4),
@@ -303,7 +299,7 @@ def test_greedy_episodes_stop_with_the_last_first_episode_and_match_a_full_rollo
 
     rows = greedy_episodes(env(), policy, 1000, ["success", "crashed"])
     resets = 2 * 6  # gymnasium's LunarLander steps once in a reset: set_seed's, then the rollout's
-    assert len(physics_steps) == resets + sum(row["steps"] for row in rows)  # each env to its episode's end
+    assert len(lunar_physics_steps) == resets + sum(row["steps"] for row in rows)  # each env to its episode's end
     with torch.no_grad():
         full = env().rollout(1000, policy, break_when_any_done=False)
     assert rows == first_episodes(full, ["success", "crashed"])
