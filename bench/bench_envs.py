@@ -24,8 +24,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-import envs  # noqa: F401  (registers the ids)
-from envs.uav import UAVPathPlanningEnv
+import dcsc_torchrl.envs  # noqa: F401  (registers the ids)
+from dcsc_torchrl.envs.uav import UAVPathPlanningEnv
 
 LUNAR_STEPS = 20_000
 UAV_STEPS = {1: 400, 50: 200, 1024: 60, 4096: 30}

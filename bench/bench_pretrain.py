@@ -90,7 +90,7 @@ def sb3_ddpg(cfg: DictConfig, frames: int, num_envs: int, rollout: int) -> float
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.noise import NormalActionNoise
 
-    import envs  # noqa: F401  (registers dcsc/UAVPathPlanning-v0)
+    import dcsc_torchrl.envs  # noqa: F401  (registers dcsc/UAVPathPlanning-v0)
 
     env = make_vec_env("dcsc/UAVPathPlanning-v0", n_envs=num_envs, seed=0)
     model = DDPG(

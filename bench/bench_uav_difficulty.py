@@ -3,8 +3,8 @@
 Run: ``python bench/bench_uav_difficulty.py [--runs runs/pretrain_uav/seed0 ...]``. One
 torch thread. Prints a markdown table over the validation scenarios (seeds 0..49):
 
-- the best constant IIFDS coefficients, :data:`envs.uav.BEST_CONSTANT_ACTION` (chosen by
-  :func:`envs.uav.best_constant_action` on seeds 1000..1099, none of them validation);
+- the best constant IIFDS coefficients, :data:`dcsc_torchrl.envs.uav.BEST_CONSTANT_ACTION` (chosen by
+  :func:`dcsc_torchrl.envs.uav.best_constant_action` on seeds 1000..1099, none of them validation);
 - the simulated operator alone, per preset of ``dcsc_torchrl.humans.traits.PRESETS``
   (its noisy look-ahead included), the operator seed 0;
 - optionally the pretrained DDPG machines, read from each run's ``eval.csv`` (written by
@@ -22,11 +22,11 @@ import pandas as pd
 import torch
 
 from dcsc_torchrl.batched_envs import make_uav_env
+from dcsc_torchrl.envs.uav import BEST_CONSTANT_ACTION, HORIZON, constant_action_outcomes
 from dcsc_torchrl.humans import SimulatedOperator
 from dcsc_torchrl.humans.operator_alone import operator_only_policy
 from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.transforms import HumanOperatorTransform
-from envs.uav import BEST_CONSTANT_ACTION, HORIZON, constant_action_outcomes
 
 VALIDATION = list(range(50))
 

@@ -1,10 +1,10 @@
 """The two tasks' environments as batched TorchRL envs, built the same way by every recipe.
 
-LunarLander: :class:`TargetLunarLanderBatch`, ``N`` :class:`envs.TargetLunarLander` stepped
+LunarLander: :class:`TargetLunarLanderBatch`, ``N`` :class:`dcsc_torchrl.envs.TargetLunarLander` stepped
 by one native TorchRL call (written for speed: TorchRL's ``GymWrapper`` over a gymnasium
 ``SyncVectorEnv`` spent more per call on its wrapper and info-dict reader than on the
 physics; docs/pretraining.md, "Speed"). UAV: the native batched
-:class:`envs.UAVPathPlanningEnv`. Both end with ``RewardSum`` and ``StepCounter``.
+:class:`dcsc_torchrl.envs.UAVPathPlanningEnv`. Both end with ``RewardSum`` and ``StepCounter``.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, OneHot, Unbounded
 from torchrl.envs import Compose, EnvBase, RewardSum, StepCounter, Transform, TransformedEnv
 
-import envs  # noqa: F401  (registers the dcsc/* gymnasium ids)
-from envs.target_lunar_lander import TargetLunarLander
-from envs.uav import UAVPathPlanningEnv
+import dcsc_torchrl.envs  # noqa: F401  (registers the dcsc/* gymnasium ids)
+from dcsc_torchrl.envs.target_lunar_lander import TargetLunarLander
+from dcsc_torchrl.envs.uav import UAVPathPlanningEnv
 
 LUNAR_ID = "dcsc/TargetLunarLander-v0"
 LUNAR_INFO_KEYS = ("success", "crashed", "landed_outside")

@@ -379,8 +379,8 @@ def plot_uav_trajectories(trace: pd.DataFrame, scenario_seed: int, path: Path, t
     """Fig. 5b: the 3-D paths of every method through the traced scenario."""
     import torch
 
-    from envs.uav import sample_scenario
-    from envs.uav_plot import plot_uav_episode
+    from dcsc_torchrl.envs.uav import sample_scenario
+    from dcsc_torchrl.envs.uav_plot import plot_uav_episode
 
     scenario = sample_scenario(scenario_seed)
     paths = {}

@@ -11,9 +11,9 @@ See ``docs/envs.md``.
 
 from gymnasium.envs.registration import register, registry
 
-from envs.iifds import iifds_step, iifds_velocity
-from envs.target_lunar_lander import TargetLunarLander, target_heuristic
-from envs.uav import (
+from dcsc_torchrl.envs.iifds import iifds_step, iifds_velocity
+from dcsc_torchrl.envs.target_lunar_lander import TargetLunarLander, target_heuristic
+from dcsc_torchrl.envs.uav import (
     BEST_CONSTANT_ACTION,
     N_OBSTACLE_PARAMS,
     N_OBSTACLES,
@@ -28,7 +28,7 @@ from envs.uav import (
     sample_scenario,
     sample_scenarios,
 )
-from envs.uav_plot import plot_uav_episode
+from dcsc_torchrl.envs.uav_plot import plot_uav_episode
 
 __all__ = [
     "BEST_CONSTANT_ACTION",
@@ -54,8 +54,8 @@ __all__ = [
 if "dcsc/TargetLunarLander-v0" not in registry:
     register(
         id="dcsc/TargetLunarLander-v0",
-        entry_point="envs.target_lunar_lander:TargetLunarLander",
+        entry_point="dcsc_torchrl.envs.target_lunar_lander:TargetLunarLander",
         max_episode_steps=1000,
     )
 if "dcsc/UAVPathPlanning-v0" not in registry:
-    register(id="dcsc/UAVPathPlanning-v0", entry_point="envs.uav:UAVPathPlanningGymEnv")
+    register(id="dcsc/UAVPathPlanning-v0", entry_point="dcsc_torchrl.envs.uav:UAVPathPlanningGymEnv")

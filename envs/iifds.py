@@ -52,10 +52,7 @@ __all__ = [
     "attractive_flow",
     "iifds_step",
     "iifds_velocity",
-    "modulation_matrix",
     "obstacle_weights",
-    "sphere_gamma",
-    "sphere_normal",
     "tangent_basis",
     "transported_velocity",
 ]
@@ -72,35 +69,6 @@ _LOG_GAMMA_FLOOR = -27.0  # log of the smallest Γ used (1e-12): the UAV at a ce
 _EXP_LIMIT = 60.0  # bound on the exponent of the distance factor exp(1/(d_g d_s) - 1)
 _FACTOR_LOG_LIMIT = 20.0  # 1/Γ^(1/ρ) <= e^20, reached only inside an obstacle
 _WEIGHT_FLOOR = 1e-6  # Γ - 1 for a UAV on (or inside) a surface
-
-
-def sphere_gamma(position: Tensor, centre: Tensor, radius: Tensor) -> Tensor:
-    """Sphere surface function ``Γ = ||p - c||^2 / R^2`` (< 1 inside, 1 on, > 1 outside).
-
-    Args:
-        position: ``[..., 3]``.
-        centre: ``[..., 3]`` (broadcast with ``position``).
-        radius: ``[...]``, positive.
-
-    Returns:
-        ``Γ`` of shape ``[...]``.
-    """
-    return (position - centre).square().sum(-1) / radius.square()
-
-
-def sphere_normal(position: Tensor, centre: Tensor, radius: Tensor) -> Tensor:
-    """Gradient of the sphere surface function, ``n = ∇Γ = 2 (p - c) / R^2``.
-
-    Args:
-        position: ``[..., 3]``.
-        centre: ``[..., 3]``.
-        radius: ``[...]``, positive.
-
-    Returns:
-        ``n`` of shape ``[..., 3]``; zero at the centre (the field uses the unit normal
-        from :func:`tangent_basis`, which picks ``+z`` there).
-    """
-    return 2 * (position - centre) / radius.square().unsqueeze(-1)
 
 
 def tangent_basis(normal: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -163,10 +131,10 @@ def _modulation_terms(position: Tensor, goal: Tensor, centre: Tensor, radius: Te
 
     ``r = 1/Γ^(1/ρ)`` (repulsive), ``s = 1/Γ^(1/σ)`` (tangential), ``t = cos(τ) t1_hat +
     sin(τ) t2_hat`` (a unit vector: ``||t|| = 1``, so the paper's ``t n^T / (||t|| ||n||)``
-    is ``t n_hat^T``). Shapes as :func:`modulation_matrix`'s arguments.
+    is ``t n_hat^T``). Shapes as :func:`iifds_velocity`'s per-obstacle arguments.
     """
-    # Γ and n as sphere_gamma / sphere_normal define them, from one offset: this runs 30 times
-    # per decision of the UAV operator's look-ahead, and calling both would compute it thrice
+    # Γ = ||p - c||^2 / R^2 and n = ∇Γ = 2 (p - c) / R^2 from one offset: this runs 30 times
+    # per decision of the UAV operator's look-ahead
     offset = position - centre
     distance_sq = offset.square().sum(-1)
     gamma = distance_sq / radius.square()
@@ -176,46 +144,6 @@ def _modulation_terms(position: Tensor, goal: Tensor, centre: Tensor, radius: Te
     d_goal = (position - goal).norm(dim=-1)
     scaled = _scaled_log_gamma(gamma, d_surface, d_goal)
     return gamma, n_hat, tangent, _inverse_gamma_power(scaled, rho0), _inverse_gamma_power(scaled, sigma0)
-
-
-def modulation_matrix(
-    position: Tensor,
-    goal: Tensor,
-    centre: Tensor,
-    radius: Tensor,
-    rho0: Tensor,
-    sigma0: Tensor,
-    tau: Tensor,
-) -> Tensor:
-    """Modulation matrix of one sphere, ``M = I - n n^T / (Γ^(1/ρ) n^T n) + t n^T / (Γ^(1/σ) ||t|| ||n||)``.
-
-    The repulsive term (second) removes the flow's component along the normal near the
-    surface; the tangential term (third) turns it along ``t = cos(τ) t1_hat + sin(τ)
-    t2_hat``. ``ρ = ρ0 exp(1 - 1/(d_g d_s))`` and ``σ = σ0 exp(1 - 1/(d_g d_s))`` with
-    ``d_s = ||p - c|| - R`` and ``d_g = ||p - g||``; ``ρ0``, ``σ0`` are floored at
-    ``COEFFICIENT_FLOOR``. Whether the flow moves away from the obstacle (``M = I``) is
-    decided in :func:`iifds_velocity`, which applies ``M`` to a vector without forming it.
-
-    Args:
-        position: UAV position ``[..., 3]``.
-        goal: ``[..., 3]``.
-        centre: obstacle centre ``[..., 3]``.
-        radius: ``[...]``.
-        rho0: repulsive response coefficient ``[...]`` (action 0, in [0, 3]).
-        sigma0: tangential response coefficient ``[...]`` (action 1, in [0, 3]).
-        tau: tangent direction angle ``[...]`` (action 2, in [0, 3]).
-
-    Returns:
-        ``M`` of shape ``[..., 3, 3]``.
-    """
-    _, n_hat, tangent, repulsive, tangential = _modulation_terms(position, goal, centre, radius, rho0, sigma0, tau)
-    n_row = n_hat.unsqueeze(-2)
-    identity = torch.eye(3, dtype=position.dtype, device=position.device)
-    return (
-        identity
-        - repulsive[..., None, None] * n_hat.unsqueeze(-1) * n_row
-        + tangential[..., None, None] * tangent.unsqueeze(-1) * n_row
-    )
 
 
 def obstacle_weights(gamma: Tensor) -> Tensor:

@@ -7,7 +7,7 @@ import torch
 from matplotlib.figure import Figure
 from torch import Tensor
 
-from envs.uav import ARENA_HIGH, ARENA_LOW, DT, GOAL_RADIUS, obstacle_states
+from dcsc_torchrl.envs.uav import ARENA_HIGH, ARENA_LOW, DT, GOAL_RADIUS, obstacle_states
 
 __all__ = ["plot_uav_episode"]
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from envs.target_lunar_lander import TargetLunarLander
+from dcsc_torchrl.envs.target_lunar_lander import TargetLunarLander
 
 
 @pytest.fixture

@@ -4,17 +4,15 @@ import math
 
 import pytest
 import torch
+from iifds_reference import modulation_matrix, sphere_gamma, sphere_normal
 
-from envs.iifds import (
+from dcsc_torchrl.envs.iifds import (
     COEFFICIENT_FLOOR,
     SPEED_CAP,
     attractive_flow,
     iifds_step,
     iifds_velocity,
-    modulation_matrix,
     obstacle_weights,
-    sphere_gamma,
-    sphere_normal,
     tangent_basis,
     transported_velocity,
 )

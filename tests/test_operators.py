@@ -9,11 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from internal_model_fit import fit_internal_model
 from scipy.stats import exponnorm
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from dcsc_torchrl.batched_envs import make_lunar_env, make_uav_env
+from dcsc_torchrl.envs.uav import DT, N_OBSTACLE_PARAMS, ObstacleParam
 from dcsc_torchrl.humans import (
     PRESETS,
     OperatorTraits,
@@ -22,10 +24,9 @@ from dcsc_torchrl.humans import (
     operator_only_episodes,
     operator_only_policy,
 )
-from dcsc_torchrl.humans.pilot import INTERNAL_MODEL, fit_internal_model, predict_frame
-from dcsc_torchrl.humans.traits import EnvStreams
+from dcsc_torchrl.humans.pilot import INTERNAL_MODEL, predict_frame
+from dcsc_torchrl.humans.streams import EnvStreams
 from dcsc_torchrl.transforms import HumanOperatorTransform
-from envs.uav import DT, N_OBSTACLE_PARAMS, ObstacleParam
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "operators.md"
 

@@ -10,11 +10,11 @@ import pytest
 import torch
 
 from dcsc_torchrl.batched_envs import LUNAR_ID
+from dcsc_torchrl.envs.uav import HORIZON
 from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.methods import METHOD_NAMES, METHODS, learned_method, make_arbiter, task_methods
 from dcsc_torchrl.tasks import TASKS, get_task
 from dcsc_torchrl.transforms import HumanOperator, HumanOperatorTransform
-from envs.uav import HORIZON
 
 
 def test_each_task_limit_is_its_envs_own():

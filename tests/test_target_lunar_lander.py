@@ -10,8 +10,8 @@ from gymnasium.utils.env_checker import check_env
 from torchrl.envs import GymEnv, GymWrapper
 from torchrl.envs.utils import check_env_specs
 
-import envs  # noqa: F401  (registers the ids)
-from envs.target_lunar_lander import (
+import dcsc_torchrl.envs  # noqa: F401  (registers the ids)
+from dcsc_torchrl.envs.target_lunar_lander import (
     MAX_PARTICLES,
     PAD_CHUNKS,
     TargetLunarLander,

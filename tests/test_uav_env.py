@@ -13,8 +13,8 @@ from tensordict import TensorDict
 from torchrl.envs import GymEnv
 from torchrl.envs.utils import check_env_specs
 
-import envs  # noqa: F401  (registers the ids)
-from envs.uav import (
+import dcsc_torchrl.envs  # noqa: F401  (registers the ids)
+from dcsc_torchrl.envs.uav import (
     ARENA_HIGH,
     BEST_CONSTANT_ACTION,
     BEST_CONSTANT_SEEDS,
@@ -33,7 +33,6 @@ from envs.uav import (
     ObstacleParam,
     UAVPathPlanningEnv,
     UAVScenario,
-    _segment_point_distance,
     best_constant_action,
     constant_action_outcomes,
     obstacle_states,
@@ -41,7 +40,8 @@ from envs.uav import (
     sample_scenarios,
     step_reward,
 )
-from envs.uav_plot import plot_uav_episode
+from dcsc_torchrl.envs.uav_env import _segment_point_distance
+from dcsc_torchrl.envs.uav_plot import plot_uav_episode
 
 ENV_ID = "dcsc/UAVPathPlanning-v0"
 START = torch.tensor([0.5, 2.5, 5.5])

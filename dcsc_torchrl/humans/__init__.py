@@ -12,11 +12,12 @@ Every operator plugs into any pipeline through
 :class:`~dcsc_torchrl.transforms.HumanOperatorTransform`; see ``docs/operators.md``.
 """
 
+from dcsc_torchrl.humans.decision_loop import SimulatedHuman
 from dcsc_torchrl.humans.keyboard import KeyboardPilot, NoDisplayError
 from dcsc_torchrl.humans.operator_alone import operator_only_episodes, operator_only_policy
 from dcsc_torchrl.humans.pilot import SimulatedPilot
 from dcsc_torchrl.humans.random_operator import RandomOperator
-from dcsc_torchrl.humans.traits import PRESETS, OperatorTraits, SimulatedHuman
+from dcsc_torchrl.humans.traits import PRESETS, OperatorTraits
 from dcsc_torchrl.humans.uav_operator import SimulatedOperator
 
 __all__ = [

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium.envs.box2d.lunar_lander import FPS
 from tensordict import TensorDictBase
 
-from dcsc_torchrl.humans.traits import PRESETS, OperatorTraits, SimulatedHuman
-from envs.target_lunar_lander import target_heuristic
+from dcsc_torchrl.envs.target_lunar_lander import target_heuristic
+from dcsc_torchrl.humans.decision_loop import SimulatedHuman
+from dcsc_torchrl.humans.traits import PRESETS, OperatorTraits
 
 __all__ = ["SimulatedPilot"]
 
@@ -37,43 +37,9 @@ INTERNAL_MODEL = np.array(
 """The pilot's internal model of the lander, ``[key, feature, velocity]``: one frame's change
 of (vx, vy, angular velocity) in observation units is ``[1, sin(angle), cos(angle)] @
 INTERNAL_MODEL[key]`` in flight (gravity, and each engine's push along or across the
-lander's axis). Least squares over 20,000 flying frames (:func:`fit_internal_model` with
-its defaults; ``tests/test_operators.py`` refits and compares): what a practised person
+lander's axis). Least squares over 20,000 flying frames (``tests/internal_model_fit.py``'s
+``fit_internal_model`` with its defaults; ``tests/test_operators.py`` refits and compares): what a practised person
 knows of the engines, not the simulator (no engine dispersion, leg springs or terrain)."""
-
-
-def fit_internal_model(frames: int = 20_000, seed: int = 1_000_000) -> np.ndarray:
-    """Fits :data:`INTERNAL_MODEL` from frames of ``dcsc/TargetLunarLander-v0`` in flight.
-
-    The frames come from a pilot that presses a uniformly random key or
-    :func:`~envs.target_lunar_lander.target_heuristic`'s, half and half (so the states
-    are those of flying towards a pad), on episodes seeded ``seed, seed + 1, ...``
-    (far from the validation scenarios); frames with a leg down are left out.
-
-    Returns:
-        ``[4, 3, 3]``: per key, the least-squares map from ``[1, sin(angle), cos(angle)]``
-        to one frame's change of (vx, vy, angular velocity).
-    """
-    env = gym.make("dcsc/TargetLunarLander-v0")
-    rng = np.random.default_rng(seed)
-    features: list[list[np.ndarray]] = [[] for _ in range(N_KEYS)]
-    changes: list[list[np.ndarray]] = [[] for _ in range(N_KEYS)]
-    episode, kept = 0, 0
-    obs, _ = env.reset(seed=seed)
-    while kept < frames:
-        key = int(rng.integers(N_KEYS)) if rng.random() < 0.5 else target_heuristic(obs)
-        next_obs, _, terminated, truncated, _ = env.step(key)
-        if not (obs[6] or obs[7] or next_obs[6] or next_obs[7] or terminated):
-            features[key].append(_features(obs))
-            changes[key].append(next_obs[VELOCITIES] - obs[VELOCITIES])
-            kept += 1
-        obs = next_obs
-        if terminated or truncated:
-            episode += 1
-            obs, _ = env.reset(seed=seed + episode)
-    return np.stack(
-        [np.linalg.lstsq(np.array(x, np.float64), np.array(y, np.float64), rcond=None)[0] for x, y in zip(features, changes, strict=True)]
-    )
 
 
 def _features(obs: np.ndarray) -> np.ndarray:
@@ -103,7 +69,7 @@ def predict_frame(obs: np.ndarray, keys: np.ndarray) -> np.ndarray:
 class SimulatedPilot(SimulatedHuman):
     """The paper's LunarLander operator (§6.1: "the human has accurate knowledge of the landing target").
 
-    Its controller is :func:`envs.target_lunar_lander.target_heuristic`, which reads
+    Its controller is :func:`dcsc_torchrl.envs.target_lunar_lander.target_heuristic`, which reads
     the pad's x from ``observation[..., 8]``; the traits (decision interval, noise, lag,
     ex-Gaussian RT, lapses) are :class:`~dcsc_torchrl.humans.traits.OperatorTraits`,
     run by :class:`~dcsc_torchrl.humans.traits.SimulatedHuman`. The workload that

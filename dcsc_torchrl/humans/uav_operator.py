@@ -8,17 +8,8 @@ from collections.abc import Sequence
 import torch
 from tensordict import TensorDictBase
 
-from dcsc_torchrl.humans.traits import (
-    _GOLDEN,
-    PRESETS,
-    OperatorTraits,
-    SimulatedHuman,
-    _mix,
-    _shift_right,
-    _signed,
-)
-from envs.iifds import iifds_step
-from envs.uav import (
+from dcsc_torchrl.envs.iifds import iifds_step
+from dcsc_torchrl.envs.uav import (
     ACTION_HIGH,
     ARENA_HIGH,
     ARENA_LOW,
@@ -26,6 +17,9 @@ from envs.uav import (
     GOAL_RADIUS,
     obstacle_states,
 )
+from dcsc_torchrl.humans.decision_loop import SimulatedHuman
+from dcsc_torchrl.humans.streams import _GOLDEN, _mix, _shift_right, _signed
+from dcsc_torchrl.humans.traits import PRESETS, OperatorTraits
 
 __all__ = ["DEFAULT_GRID", "SimulatedOperator"]
 
@@ -39,8 +33,8 @@ class SimulatedOperator(SimulatedHuman):
     """The paper's UAV operator (§6.1: "the human can anticipate the trajectories of moving obstacles").
 
     At a decision it tries every (rho0, sigma0, tau) of a small grid by rolling the
-    IIFDS flow (:func:`envs.iifds.iifds_step`) forward ``horizon`` steps against the
-    obstacles' predicted positions (:func:`envs.uav.obstacle_states` of the env's
+    IIFDS flow (:func:`dcsc_torchrl.envs.iifds.iifds_step`) forward ``horizon`` steps against the
+    obstacles' predicted positions (:func:`dcsc_torchrl.envs.uav.obstacle_states` of the env's
     ``obstacle_params`` at ``time + h * DT``), batched over envs x candidates, and keeps
     the best score. Its foresight is imperfect: it sees each obstacle ``k`` moving with
     the velocity error ``e_k ~ N(0, lookahead_noise^2 I)`` (m/s), redrawn at every
