@@ -1,6 +1,6 @@
 """Operator-only success per preset on both tasks, and how fast the operators decide.
 
-    python bench/bench_operators.py [--seeds 50] [--tasks lunarlander uav]
+    python bench/bench_operators.py [--seeds 50] [--tasks lunarlander uav] [--presets P ...]
 
 For every preset of :data:`dcsc_torchrl.humans.PRESETS`, the simulated operator flies
 alone (``action = human_action``) one episode per env: TargetLunarLander with a random
@@ -74,6 +74,7 @@ def main() -> None:
     parser.add_argument(
         "--tasks", nargs="+", default=list(TASK_NAMES), choices=TASK_NAMES
     )
+    parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=list(PRESETS))
     args = parser.parse_args()
     torch.set_num_threads(1)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
@@ -83,7 +84,7 @@ def main() -> None:
     )
     print("|---|---|---|---|---|---|---|---|")
     for task in args.tasks:
-        for preset in PRESETS:
+        for preset in args.presets:
             r = bench(task, preset, args.seeds)
             print(
                 f"| {task} | {preset} | {r['success']:.0%} | {r['return']:.1f} | {r['steps']:.0f} "

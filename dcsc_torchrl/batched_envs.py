@@ -3,7 +3,7 @@
 LunarLander: :class:`TargetLunarLanderBatch`, ``N`` :class:`dcsc_torchrl.envs.TargetLunarLander` stepped
 by one native TorchRL call (written for speed: TorchRL's ``GymWrapper`` over a gymnasium
 ``SyncVectorEnv`` spent more per call on its wrapper and info-dict reader than on the
-physics; docs/pretraining.md, "Speed"). UAV: the native batched
+physics; docs/records/tuning_log.md, "Speed against Stable-Baselines3"). UAV: the native batched
 :class:`dcsc_torchrl.envs.UAVPathPlanningEnv`. Both end with ``RewardSum`` and ``StepCounter``.
 """
 

@@ -163,7 +163,7 @@ def _uav_networks(network: Mapping[str, Any]) -> tuple[nn.Module, nn.Module]:
 
 def _over_the_pad(observation: torch.Tensor) -> torch.Tensor:
     """Whether the lander is above the pad, within half its half-width of the centre
-    (:data:`dcsc_torchrl.envs.target_lunar_lander.PAD_HALF_WIDTH`; docs/experiment_log.md)."""
+    (:data:`dcsc_torchrl.envs.target_lunar_lander.PAD_HALF_WIDTH`; docs/records/experiment_log.md)."""
     from dcsc_torchrl.envs.target_lunar_lander import PAD_HALF_WIDTH
 
     return (observation[..., 0] - observation[..., 8]).abs() < PAD_HALF_WIDTH / 2

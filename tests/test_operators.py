@@ -50,7 +50,7 @@ def lunar_rollout(operator, seed: int, steps: int = 60, n_envs: int = 3) -> Tens
 @pytest.mark.parametrize(
     ("field", "value"),
     [
-        ("decision_interval", 0.0),
+        ("decision_interval", -0.1),
         ("eps", 1.5),
         ("lag", 1.0),
         ("rt_tau", -0.1),

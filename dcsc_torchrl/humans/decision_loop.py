@@ -223,9 +223,10 @@ class SimulatedHuman(ABC):
             state["plan"][rows] = torch.where(lagged.unsqueeze(-1), held, new)
             state["since"][rows] = 0
             state["rt"][rows] = rt
-            excess = (rt - self.traits.lapse_threshold).clamp_min(0.0)
-            lapse = torch.round(excess / self.frame_seconds).long()
-            wait[rows] = period + lapse
+            wait[rows] = period
+            if self.traits.lapses:
+                excess = (rt - self.traits.lapse_threshold).clamp_min(0.0)
+                wait[rows] += torch.round(excess / self.frame_seconds).long()
         step = state["since"].clamp_max(self.decision_period - 1).unsqueeze(-1)
         choice = torch.where(active, state["plan"].gather(-1, step).squeeze(-1), state["choice"])
         state["choice"] = choice

@@ -42,7 +42,7 @@ class OperatorTraits:
 
     Attributes:
         decision_interval: seconds between decisions (rounded to whole frames, at least
-            one); the key is held in between.
+            one: 0 decides every frame); the key is held in between.
         eps: probability of a random choice at a decision (action noise), in [0, 1].
         lag: probability of repeating the previous choice at a decision, in [0, 1).
         rt_mu: mean of the Gaussian part of the RT, seconds, >= 0.
@@ -56,6 +56,9 @@ class OperatorTraits:
         perceive_delayed: act on the observation of one RT ago (a person) rather than on
             the current one (a scripted controller). The delay is capped at
             :data:`MAX_PERCEPTION_DELAY` seconds and at the frames since the episode began.
+        lapses: a decision slower than ``lapse_threshold`` delays the next one (a person);
+            ``False``: the RT is drawn and reported (so b_h has something to read) but
+            never changes what the operator does (the literature's surrogate pilots).
     """
 
     decision_interval: float = 0.2
@@ -67,10 +70,11 @@ class OperatorTraits:
     workload_gain: float = 0.3
     lapse_threshold: float = 1.0
     perceive_delayed: bool = True
+    lapses: bool = True
 
     def __post_init__(self) -> None:
         checks = {
-            "decision_interval": self.decision_interval > 0,
+            "decision_interval": self.decision_interval >= 0,
             "eps": 0 <= self.eps <= 1,
             "lag": 0 <= self.lag < 1,
             "rt_mu": self.rt_mu >= 0,
@@ -95,6 +99,9 @@ PRESETS: dict[str, OperatorTraits] = {
     "laggy": OperatorTraits(lag=0.8),
     "distracted": OperatorTraits(rt_mu=0.4, rt_sigma=0.1, rt_tau=0.2, workload_gain=0.5),
     "scripted": OperatorTraits(decision_interval=0.04, perceive_delayed=False),
+    "surrogate_expert": OperatorTraits(decision_interval=0.0, perceive_delayed=False, lapses=False),
+    "surrogate_noisy": OperatorTraits(decision_interval=0.0, perceive_delayed=False, lapses=False, eps=0.3),
+    "surrogate_laggy": OperatorTraits(decision_interval=0.0, perceive_delayed=False, lapses=False, lag=0.85),
 }
 """Surrogate pilots in the spirit of the shared-autonomy literature (Reddy et al., 2018):
 a competent ``expert``, a ``noisy`` one (random keys with probability 0.25, Reddy et
@@ -105,4 +112,13 @@ between two successive responses, Pashler 1994) and act on what they saw one RT 
 their RT is ex-Gaussian with mu 0.35 s, sigma 0.05 s and tau 0.1 s (0.4 / 0.1 / 0.2 for
 ``distracted``), the range of ex-Gaussian fits to choice reaction times (Ratcliff and
 Murdock 1976; Luce 1986). ``scripted`` is the undelayed controller re-deciding every
-frame pair: an explicit upper bound, not a person."""
+frame pair: an explicit upper bound, not a person.
+
+The ``surrogate_*`` presets are the peers' surrogate pilots exactly as their papers define
+them, so our numbers can stand beside theirs (docs/operators.md): the undelayed
+controller queried every frame (``surrogate_expert``), corrupted with a uniformly random
+choice with probability 0.3 on every frame (``surrogate_noisy``: the diffusion shared
+autonomy of Yoneda et al., 2023; Reddy et al., 2018, corrupt with 0.15 per factor) or
+repeating its previous choice with probability 0.85 on every frame (``surrogate_laggy``:
+Yoneda et al.; Reddy et al. use 0.8). They draw the expert's RTs for b_h to read, but
+have no lapses: nothing of a person's timing changes what they press."""
