@@ -132,13 +132,20 @@ def save_checkpoint(path: str | os.PathLike, *, task: str, payload: Mapping[str,
     return path
 
 
-def load_checkpoint(path: str | os.PathLike, *, task: str) -> dict[str, Any]:
-    """Reads a checkpoint with ``weights_only=True`` and checks it is one of ``task``.
+def load_checkpoint(path: str | os.PathLike, *, task: str, machine: bool = False) -> dict[str, Any]:
+    """Reads a checkpoint with ``weights_only=True`` and checks it is one of ``task``, of this format.
+
+    Args:
+        path: the checkpoint file.
+        task: the task it must belong to.
+        machine: also require what a pretrained machine is rebuilt from (the network settings
+            ``config.network`` and the state dicts of the task's ``checkpoint_modules``).
 
     Raises:
         FileNotFoundError: no file at ``path``.
         CheckpointError: the file is empty, truncated or corrupt, holds objects other than
-            tensors and plain data, is not a dcsc checkpoint, or belongs to another task.
+            tensors and plain data, is not a dcsc checkpoint, is of another format version (an
+            older or newer dcsc-torchrl), lacks an entry this version reads, or belongs to another task.
     """
     import pickle
 
@@ -161,11 +168,35 @@ def load_checkpoint(path: str | os.PathLike, *, task: str) -> dict[str, Any]:
                               "delete it to pretrain again") from None
     if not isinstance(data, dict) or "task" not in data:
         raise CheckpointError(f"{path} is not a dcsc-torchrl checkpoint")
+    version = data.get("format_version")
+    if version != FORMAT_VERSION:
+        raise CheckpointError(f"checkpoint {path} is of format version {version}, this dcsc-torchrl reads version "
+                              f"{FORMAT_VERSION}: pretrain it again (delete it), or use the version that wrote it")
     if data["task"] != task:
         raise CheckpointError(
             f"checkpoint {path} was written for task {data['task']!r}, but this run is for task {task!r}"
         )
+    if machine:
+        _check_machine_entries(data, path, task)
     return data
+
+
+def _check_machine_entries(data: Mapping[str, Any], path: Path, task: str) -> None:
+    """Refuses a checkpoint without what a pretrained machine is rebuilt from: ``config.network``
+    and the state dicts of the task's ``checkpoint_modules`` (each a group of keys)."""
+    from dcsc_torchrl.tasks import get_task
+
+    def has(entry: str) -> bool:
+        tree: Any = data
+        for key in entry.split("."):
+            tree = tree.get(key) if isinstance(tree, Mapping) else None
+        return isinstance(tree, Mapping)
+
+    entries = ["config.network", *(f"state.{name}" for name in get_task(task).checkpoint_modules)]
+    missing = [entry for entry in entries if not has(entry)]
+    if missing:
+        raise CheckpointError(f"checkpoint {path} lacks {', '.join(missing)} (written by another version of "
+                              "dcsc-torchrl?): pretrain it again (delete it)")
 
 
 def load_module_state(module: nn.Module, state: Mapping[str, torch.Tensor], *, name: str) -> None:

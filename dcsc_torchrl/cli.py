@@ -5,7 +5,7 @@
     dcsc sweep [--quick] [--out DIR] [--address ADDR] [--fresh] [key=value ...]
     dcsc reproduce [--quick] [--out DIR] [--fresh] [key=value ...]
     dcsc report [--out DIR]
-    dcsc play lunarlander [--assist {dcsc,none}] [--checkpoint PATH] [--episodes N] [--seed S]
+    dcsc play lunarlander [--assist {dcsc,none}] [--checkpoint PATH] [--episodes N] [--seed S] [--out DIR]
 
 Every parser of the project is built here (the recipes parse their command lines with
 these), and this module imports neither torch nor TorchRL: ``--help``, a bad argument and
@@ -83,15 +83,26 @@ def _common(parser: argparse.ArgumentParser) -> None:
                         help="a traceback instead of a one-line error (also DCSC_DEBUG=1)")
 
 
-def _positive_int(text: str) -> int:
-    """An argparse type: an integer >= 1 (the error names the value)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
-    return value
+def _int_at_least(low: int) -> Callable[[str], int]:
+    """An argparse type: an integer >= ``low`` (the error names the value)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {value}")
+        return value
+
+    return parse
+
+
+def _name(text: str) -> str:
+    """An argparse type: a name for a CSV column (not empty, one line)."""
+    if not text.strip() or "\n" in text or "\r" in text:
+        raise argparse.ArgumentTypeError(f"expected a name on one line, got {text!r}")
+    return text
 
 
 def _overrides(parser: argparse.ArgumentParser, example: str) -> None:
@@ -158,7 +169,7 @@ def add_reproduce_options(parser: argparse.ArgumentParser) -> argparse.ArgumentP
                         help="results root (default results/, results/quick with --quick)")
     parser.add_argument("--fresh", action="store_true",
                         help="delete the results of an earlier run of another config and start over")
-    parser.add_argument("--workers", type=_positive_int, default=2,
+    parser.add_argument("--workers", type=_int_at_least(1), default=2,
                         help="pretrainings / cells at a time, as Ray tasks on a local instance (default 2, "
                              "this project's 2-core machine); 1: one after another in this process, no Ray")
     _overrides(parser, "protocol.max_steps=200 (given to both tasks)")
@@ -180,11 +191,12 @@ def add_play_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
                         help="LunarLander pretraining checkpoint for --assist dcsc (default: where dcsc run "
                              "reads seed 0's, <pretrain.out_dir>/seed0/checkpoint.pt of "
                              "recipes/shared_control_lunarlander.yaml)")
-    parser.add_argument("--episodes", type=int, default=3, help="episodes to fly (default 3)")
-    parser.add_argument("--seed", type=int, default=0, help="episode i plays scenario seed + i (default 0)")
+    parser.add_argument("--episodes", type=_int_at_least(1), default=3, help="episodes to fly (default 3)")
+    parser.add_argument("--seed", type=_int_at_least(0), default=0,
+                        help="episode i plays scenario seed + i (default 0)")
     parser.add_argument("--out", type=Path, default=Path("results/play"),
                         help="folder of episodes.csv and trace.csv, appended to (default results/play)")
-    parser.add_argument("--participant", default="person",
+    parser.add_argument("--participant", type=_name, default="person",
                         help="the operator column of the CSVs (a participant id in a user study)")
     return parser
 
@@ -196,14 +208,14 @@ def _say(message: str) -> None:
 
 def _pretrain(args: argparse.Namespace) -> Path:
     from dcsc_torchrl.checkpoint import checkpoint_path
-    from dcsc_torchrl.config import load_config
+    from dcsc_torchrl.config import load_config, writable_folder
 
     task = get_task(args.task)
     module = task.pretrain_recipe
     cfg = load_config(recipes_dir() / f"{module.rsplit('.', 1)[1]}.yaml", args.overrides, quick=args.quick)
     # by default where `dcsc run` (same --quick) reads this seed's machine
     protocol = load_config(recipes_dir() / task.config, quick=args.quick)
-    out = args.out or checkpoint_path(protocol.pretrain.out_dir, cfg.seed).parent
+    out = writable_folder(args.out or checkpoint_path(protocol.pretrain.out_dir, cfg.seed).parent)
     cfg.logger.out_dir = str(out)
     importlib.import_module(module).train(cfg, resume=args.resume)
     _say(f"checkpoint in {out / 'checkpoint.pt'}")
@@ -213,8 +225,8 @@ def _pretrain(args: argparse.Namespace) -> Path:
 def _run(args: argparse.Namespace) -> Path:
     from dcsc_torchrl.config import load_config
 
-    # the config checked before torch loads: a typo is answered at once (run checks it again)
-    load_config(recipes_dir() / get_task(args.task).config, args.overrides, quick=args.quick)
+    # the config checked before torch loads: a typo is answered at once (run checks it again, and warns)
+    load_config(recipes_dir() / get_task(args.task).config, args.overrides, quick=args.quick, quiet=True)
     from recipes.shared_control import run
 
     return run(args)
@@ -240,11 +252,12 @@ def _sweep(args: argparse.Namespace) -> Any:
     from dcsc_torchrl.config import load_config
 
     sweep_overrides = [item for item in args.overrides if item.partition(".")[0] not in TASK_NAMES]
-    load_config(recipes_dir() / "sweep.yaml", sweep_overrides, quick=args.quick)  # checked before Ray loads
+    load_config(recipes_dir() / "sweep.yaml", sweep_overrides, quick=args.quick, quiet=True)  # before Ray loads
     for task in TASK_NAMES:
         prefix = f"{task}."
         load_config(recipes_dir() / get_task(task).config,
-                    [item[len(prefix):] for item in args.overrides if item.startswith(prefix)], quick=args.quick)
+                    [item[len(prefix):] for item in args.overrides if item.startswith(prefix)], quick=args.quick,
+                    quiet=True)
     from recipes.sweep import sweep
 
     return sweep(args)
@@ -297,6 +310,8 @@ def _one_line(err: BaseException) -> str:
     text = str(err).strip() or type(err).__name__
     if isinstance(err, KeyError):  # str(KeyError('x')) is "'x'"
         text = f"missing key {text}"
+    elif isinstance(err, OSError) and err.strerror and err.filename:  # not "[Errno 28] ...: '/path'"
+        text = f"cannot use {err.filename}: {err.strerror}"
     return " ".join(text.split())
 
 
@@ -314,7 +329,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         _say("dcsc: interrupted")
         return 130
-    except (ValueError, FileNotFoundError, IsADirectoryError, PermissionError) as err:
+    except (ValueError, OSError) as err:  # a user's mistake, a missing or unwritable file, a full disk
         if debug:
             raise
         _say(f"dcsc: error: {_one_line(err)}")

@@ -6,18 +6,26 @@ hydra (``optim.lr=1e-3``).
 
 Every config is checked before any work starts, against a schema read from the recipe's
 own yaml: each key of the file (outside its ``quick`` block) has the type of its value
-there (int, float, bool, str, list of one type, a group; ``null`` accepts anything), so a
-key added to a yaml file is checked with no code to change. An unknown key, a value of
-the wrong type and a count that is not positive (:data:`LIMITS`) are refused with one
-line naming the key (:class:`ConfigError`). This module imports no torch: the ``dcsc``
+there (int, float, bool, str, list of one type, a group; a ``null`` key the type that
+:data:`NULLABLE` declares), so a key added to a yaml file is checked with no code to
+change. An unknown key, an override of a key the file fixes (:data:`FIXED`), a value of
+the wrong type, a number that is not finite or out of its range (:data:`LIMITS`) and an
+empty list that needs an entry (:data:`NON_EMPTY`) are refused with one line naming the
+key (:class:`ConfigError`); a repeated entry of a list of things run once
+(:data:`DISTINCT`) is dropped with a warning. This module imports no torch: the ``dcsc``
 command checks a config in a fraction of a second.
 """
 
 from __future__ import annotations
 
 import difflib
+import errno
+import math
 import os
+import sys
+import tempfile
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,54 +40,138 @@ class ConfigError(UsageError):
     """A config key that does not exist, or a value of the wrong type or range."""
 
 
-LIMITS: dict[str, tuple[float, bool]] = {
-    # key: (bound, strict) -- the value must be > bound (strict) or >= bound; null passes
-    "threads": (1, False),
-    "env.num_envs": (1, False),
-    "collector.rollout_length": (1, False),
-    "collector.workers": (1, False),
-    "collector.init_random_frames": (0, False),
-    "exploration.annealing_frames": (1, False),
-    "train.episodes": (1, False),
-    "train.checkpoint_every": (1, False),
-    "eval.episodes": (0, False),
-    "eval.scenarios": (0, False),
-    "qcritic.buffer_size": (1, False),
-    "qcritic.batch_size": (1, False),
-    "qcritic.updates_per_batch": (1, False),
-    "qcritic.lr": (0, True),
-    "optim.lr": (0, True),
-    "ppo.epochs": (1, False),
-    "ppo.minibatch_size": (1, False),
-    "ppo.clip_epsilon": (0, True),
-    "optim.actor_lr": (0, True),
-    "optim.critic_lr": (0, True),
-    "optim.batch_size": (1, False),
-    "optim.buffer_size": (1, False),
-    "optim.updates_per_frame": (0, True),
-    "optim.max_grad_norm": (0, True),
-    "optim.grad_clip": (0, True),
-    "machine.num_samples": (1, False),
-    "online.updates_per_batch": (1, False),
-    "warmup.updates": (0, False),
-    "warmup.batch_size": (1, False),
-    "warmup.lr": (0, True),
-    "scenarios.machine_alone_runs": (0, False),
-    "scenarios.blend_runs": (0, False),
-    "scenarios.first_validation_seed": (0, False),
-    "arbiter.centred.gain": (0, True),
-    "protocol.rollout_length": (1, False),
-    "online.theta_lr": (0, False),
-    "online.critic_lr": (0, False),
-    "scenarios.operator_runs": (1, False),
-    "scenarios.collaboration_runs": (1, False),
-    "scenarios.validation_scenarios": (1, False),
-    "protocol.group_size": (1, False),
-    "protocol.max_steps": (1, False),
-    "ray.workers": (1, False),
-    "ray.retries": (0, False),
+@dataclass(frozen=True)
+class Range:
+    """The numbers a key accepts: from ``low`` to ``high``, each end included unless it is open.
+
+    Examples:
+        >>> unit = Range(0, 1, open_low=True)
+        >>> 0.5 in unit, 0 in unit, str(unit)
+        (True, False, 'a value in (0, 1]')
+        >>> str(Range(1))
+        'a value >= 1'
+    """
+
+    low: float = -math.inf
+    high: float = math.inf
+    open_low: bool = False
+    open_high: bool = False
+
+    def __contains__(self, value: float) -> bool:
+        above = value > self.low if self.open_low else value >= self.low
+        below = value < self.high if self.open_high else value <= self.high
+        return above and below
+
+    def __str__(self) -> str:
+        if self.high == math.inf:
+            return f"a value {'>' if self.open_low else '>='} {self.low:g}"
+        return (f"a value in {'(' if self.open_low else '['}{self.low:g}, "
+                f"{self.high:g}{')' if self.open_high else ']'}")
+
+
+COUNT = Range(1)
+NON_NEGATIVE = Range(0)
+POSITIVE = Range(0, open_low=True)
+UNIT = Range(0, 1)
+"""A probability, a discount, a share of authority."""
+STEP = Range(0, 1, open_low=True)
+"""A soft-update coefficient: 0 would never move the target."""
+
+LIMITS: dict[str, Range] = {
+    # every recipe
+    "seed": NON_NEGATIVE,
+    "threads": COUNT,
+    # pretraining
+    "env.num_envs": COUNT,
+    "network.hidden": COUNT,
+    "network.actor_dropout": Range(0, 1, open_high=True),
+    "collector.rollout_length": COUNT,
+    "collector.workers": COUNT,
+    "collector.init_random_frames": NON_NEGATIVE,
+    "exploration.sigma_init": NON_NEGATIVE,
+    "exploration.sigma_end": NON_NEGATIVE,
+    "exploration.annealing_frames": COUNT,
+    "loss.gamma": UNIT,
+    "loss.gae_lambda": UNIT,
+    "loss.polyak": UNIT,
+    "loss.entropy_coeff": NON_NEGATIVE,
+    "loss.critic_coeff": NON_NEGATIVE,
+    "loss.reward_scale": POSITIVE,
+    "train.episodes": COUNT,
+    "train.checkpoint_every": COUNT,
+    "train.stop_success": UNIT,
+    "train.stop_eval_episodes": COUNT,
+    "eval.episodes": NON_NEGATIVE,
+    "eval.scenarios": NON_NEGATIVE,
+    "qcritic.buffer_size": COUNT,
+    "qcritic.batch_size": COUNT,
+    "qcritic.updates_per_batch": COUNT,
+    "qcritic.lr": POSITIVE,
+    "qcritic.tau": STEP,
+    "optim.lr": POSITIVE,
+    "optim.eps": POSITIVE,
+    "ppo.epochs": COUNT,
+    "ppo.minibatch_size": COUNT,
+    "ppo.clip_epsilon": POSITIVE,
+    "optim.actor_lr": POSITIVE,
+    "optim.critic_lr": POSITIVE,
+    "optim.batch_size": COUNT,
+    "optim.buffer_size": COUNT,
+    "optim.updates_per_frame": POSITIVE,
+    "optim.max_grad_norm": POSITIVE,
+    "optim.grad_clip": POSITIVE,
+    # shared control
+    "pretrain.seeds": NON_NEGATIVE,
+    "machine.num_samples": Range(2),  # MC dropout's covariance needs two samples
+    "arbiter.hula_threshold": NON_NEGATIVE,
+    "arbiter.constant_betas": UNIT,
+    "arbiter.centred.gain": POSITIVE,
+    "online.theta_lr": NON_NEGATIVE,
+    "online.critic_lr": NON_NEGATIVE,
+    "online.gamma": UNIT,
+    "online.tau": STEP,
+    "online.updates_per_batch": COUNT,
+    "warmup.updates": NON_NEGATIVE,
+    "warmup.batch_size": COUNT,
+    "warmup.lr": POSITIVE,
+    "warmup.blend_betas": UNIT,
+    "protocol.rollout_length": COUNT,
+    "protocol.group_size": COUNT,
+    "protocol.max_steps": COUNT,
+    "scenarios.operator_runs": COUNT,
+    "scenarios.machine_alone_runs": NON_NEGATIVE,
+    "scenarios.collaboration_runs": COUNT,
+    "scenarios.blend_runs": NON_NEGATIVE,
+    "scenarios.validation_scenarios": COUNT,
+    "scenarios.first_validation_seed": NON_NEGATIVE,
+    # dcsc sweep
+    "pretrain_seeds": NON_NEGATIVE,
+    "ray.workers": COUNT,
+    "ray.retries": NON_NEGATIVE,
 }
-"""Lower bounds of the counts and rates of every recipe's config; keys a config lacks are skipped."""
+"""The range of every count, rate and probability of every recipe's config (of each entry, for a
+list); keys a config lacks are skipped, ``null`` passes. Every number must be finite besides."""
+
+NULLABLE: dict[str, Any] = {
+    "arbiter.hula_threshold": 0.5,
+    "protocol.max_steps": 1,
+    "operators": ["expert"],
+    "pretrain_seeds": [0],
+    "methods": ["dcsc"],
+    "ray.address": "auto",
+}
+"""The type of each key whose yaml value is ``null`` (a default computed at run time), given as an
+example value: an override of it is checked as one of a key with that value in the yaml would be."""
+
+NON_EMPTY = frozenset({"pretrain.seeds", "operator.presets", "tasks", "operators", "pretrain_seeds", "methods"})
+"""Lists that need an entry (``null`` passes where it is the default)."""
+
+DISTINCT = frozenset({"pretrain.seeds", "operator.presets", "arbiter.constant_betas", "warmup.blend_betas", "tasks",
+                      "operators", "pretrain_seeds", "methods"})
+"""Lists of things each run once: a repeated entry is dropped, with a warning (it would count twice)."""
+
+FIXED = frozenset({"task"})
+"""Keys a yaml file fixes: the file is the task's, an override would run one task with another's settings."""
 
 _TYPE_NAMES = {int: "an int", float: "a number", bool: "true or false", str: "a string", list: "a list",
                dict: "a group of keys"}
@@ -118,7 +210,8 @@ def _leaves(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 def _check_layer(layer: Mapping[str, Any], schema: Mapping[str, Any], source: str, prefix: str = "") -> None:
-    """Refuses unknown keys and values whose type differs from the base yaml's; coerces scalars to str."""
+    """Refuses unknown keys, fixed keys and values whose type differs from the base yaml's (or
+    :data:`NULLABLE`'s); coerces scalars to str."""
     for key, value in list(layer.items()):
         name = f"{prefix}{key}"
         if key not in schema:
@@ -126,7 +219,14 @@ def _check_layer(layer: Mapping[str, Any], schema: Mapping[str, Any], source: st
             close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
             hint = f"did you mean {close[0]}?" if close else "known keys here: " + ", ".join(known)
             raise ConfigError(f"unknown key {name} in {source} ({hint})")
+        if name in FIXED:
+            raise ConfigError(f"{name} is fixed by the config file ({schema[key]!r}), got {value!r}: choose the "
+                              "task on the command line instead")
         base = schema[key]
+        if base is None:
+            if value is None:
+                continue
+            base = NULLABLE.get(name)
         kind = _kind(base)
         if kind is dict:
             if not isinstance(value, Mapping):
@@ -149,15 +249,52 @@ def _check_layer(layer: Mapping[str, Any], schema: Mapping[str, Any], source: st
                                       f"got {value!r}")
 
 
-def _check_limits(cfg: Mapping[str, Any], source: str) -> None:
-    flat = _leaves(cfg)
-    for key, (bound, strict) in LIMITS.items():
-        value = flat.get(key)
-        if value is None or isinstance(value, bool) or not isinstance(value, (int, float)):
-            continue
-        if value < bound or (strict and value == bound):
-            raise ConfigError(f"{key}: expected a value {'>' if strict else '>='} {bound:g}, got {value!r} "
-                              f"(in {source})")
+def _numbers(value: Any) -> list[float]:
+    """The numbers of a leaf: itself, or a list's entries (booleans are not numbers)."""
+    values = value if isinstance(value, list) else [value]
+    return [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
+
+
+def _check_values(cfg: Mapping[str, Any], source: str) -> None:
+    """Refuses a number that is not finite, one out of its :data:`LIMITS` and an empty :data:`NON_EMPTY` list."""
+    for key, value in _leaves(cfg).items():
+        numbers = _numbers(value)
+        if not all(math.isfinite(v) for v in numbers):
+            raise ConfigError(f"{key}: expected a finite number, got {value!r} (in {source})")
+        limit = LIMITS.get(key)
+        if limit is not None and not all(v in limit for v in numbers):
+            each = " for every entry" if isinstance(value, list) else ""
+            raise ConfigError(f"{key}: expected {limit}{each}, got {value!r} (in {source})")
+        if key in NON_EMPTY and value == []:
+            raise ConfigError(f"{key}: expected at least one entry, got [] (in {source})")
+
+
+def warn(message: str) -> None:
+    """A warning for the user: one line on stderr, ``dcsc: warning: ...``."""
+    print(f"dcsc: warning: {message}", file=sys.stderr, flush=True)
+
+
+def distinct(name: str, values: Iterable[Any], *, quiet: bool = False) -> list[Any]:
+    """``values`` without repeats, in order; a repeated one is named in a :func:`warning <warn>`.
+
+    Examples:
+        >>> distinct("pretrain.seeds", [0, 1, 0], quiet=True)
+        [0, 1]
+    """
+    values = list(values)
+    unique = list(dict.fromkeys(values))
+    repeated = [v for v in unique if values.count(v) > 1]
+    if repeated and not quiet:
+        warn(f"{name} lists {', '.join(map(str, repeated))} more than once: each runs once")
+    return unique
+
+
+def _drop_repeats(cfg: DictConfig, *, quiet: bool) -> None:
+    """Each :data:`DISTINCT` list of ``cfg`` without repeats (:func:`distinct`)."""
+    for key in DISTINCT:
+        value = OmegaConf.select(cfg, key)
+        if value is not None and len(set(value)) < len(value):
+            OmegaConf.update(cfg, key, distinct(key, value, quiet=quiet), merge=False)
 
 
 def parse_override(item: str) -> dict[str, Any]:
@@ -188,7 +325,8 @@ def _read(path: Path, seen: tuple[Path, ...] = ()) -> DictConfig:
     return OmegaConf.merge(_read(base_path, (*seen, path.resolve())), cfg)
 
 
-def load_config(path: str | os.PathLike, overrides: Sequence[str] = (), *, quick: bool = False) -> DictConfig:
+def load_config(path: str | os.PathLike, overrides: Sequence[str] = (), *, quick: bool = False,
+                quiet: bool = False) -> DictConfig:
     """Loads a recipe's yaml, applies its ``quick`` block if asked, then the overrides, and checks them.
 
     A file may name a ``base`` yaml (relative to it) whose keys it extends or overrides,
@@ -199,11 +337,14 @@ def load_config(path: str | os.PathLike, overrides: Sequence[str] = (), *, quick
         overrides: ``"group.key=value"`` strings (hydra's dotted syntax).
         quick: merge the file's top-level ``quick:`` block (the tiny setting used by tests
             and ``make reproduce QUICK=1``).
+        quiet: no warning for a repeated entry of a :data:`DISTINCT` list (it is still dropped):
+            for a check before the command that uses the config loads it again.
 
     Raises:
         ConfigError: the file is missing or not yaml, an override is malformed, names a key
-            the config does not have or has a value of another type than the yaml's, or a
-            count of :data:`LIMITS` is out of range.
+            the config does not have or one the file fixes (:data:`FIXED`), or has a value of
+            another type than the yaml's (:data:`NULLABLE`'s for a ``null`` key); a number is not
+            finite or out of its range (:data:`LIMITS`), or a :data:`NON_EMPTY` list is empty.
 
     Examples:
         >>> import tempfile
@@ -229,8 +370,35 @@ def load_config(path: str | os.PathLike, overrides: Sequence[str] = (), *, quick
     OmegaConf.set_struct(cfg, True)
     for layer, _ in layers:
         cfg = OmegaConf.merge(cfg, layer)
-    _check_limits(OmegaConf.to_container(cfg), path.name)
+    _check_values(OmegaConf.to_container(cfg), path.name)
+    _drop_repeats(cfg, quiet=quiet)
     return cfg
+
+
+def writable_folder(path: str | os.PathLike, option: str = "--out") -> Path:
+    """``path`` when a command can write there: a folder, or one that can be made (nothing is made).
+
+    The nearest folder of ``path`` that exists must be one (not a file) and take a new entry
+    (a read-only location, a folder of another user's): checked by making and removing an
+    empty temporary folder there.
+
+    Raises:
+        UsageError: one line naming ``option``, ``path`` and what stands in the way.
+    """
+    path = Path(path)
+    parent = path
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if parent.exists() and not parent.is_dir():
+        raise UsageError(f"{option} {path}: {parent} is a file, not a folder")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".dcsc-probe-", dir=parent))
+    except OSError as err:
+        reason = os.strerror(err.errno) if err.errno else str(err)
+        if err.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+            reason = f"not writable ({reason})"
+        raise UsageError(f"{option} {path}: cannot write in {parent}: {reason}") from None
+    return path
 
 
 def to_plain(cfg: DictConfig) -> dict[str, Any]:

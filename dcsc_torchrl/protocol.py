@@ -163,7 +163,26 @@ class Scenarios:
                  validation_scenarios: int = 50, first_validation_seed: int = 0, blend_runs: int = 0) -> Scenarios:
         """The experiments' seeds: validation ``first_validation_seed + 0..N-1`` (0..49), the
         operator alone from 10,000 (the machine alone and the calibration blends on the first of
-        the same), collaboration from 20,000: ranges that never meet."""
+        the same), collaboration from 20,000: ranges that never meet.
+
+        Raises:
+            ValueError: two phases' ranges meet (a phase would replay another's scenarios),
+                naming the count or first seed that makes them meet.
+        """
+        runs = {"operator_runs": operator_runs, "machine_alone_runs": machine_alone_runs, "blend_runs": blend_runs}
+        calibration = max(runs, key=runs.get)  # the calibration phases share their seeds on purpose
+        phases = [  # (the key that sets the range, its value, the phase, its seeds)
+            ("first_validation_seed", first_validation_seed, "validation",
+             range(first_validation_seed, first_validation_seed + validation_scenarios)),
+            (calibration, runs[calibration], "calibration", range(10_000, 10_000 + runs[calibration])),
+            ("collaboration_runs", collaboration_runs, "collaboration", range(20_000, 20_000 + collaboration_runs)),
+        ]
+        for i, (key, value, phase, seeds) in enumerate(phases):
+            for _, _, other, other_seeds in phases[i + 1:]:
+                if seeds and other_seeds and seeds.start < other_seeds.stop and other_seeds.start < seeds.stop:
+                    raise ValueError(f"{key} {value}: the {phase} seeds {seeds.start}..{seeds.stop - 1} meet the "
+                                     f"{other} seeds {other_seeds.start}..{other_seeds.stop - 1} (a phase would "
+                                     "replay another's scenarios)")
         return cls(
             operator_alone=range(10_000, 10_000 + operator_runs),
             machine_alone=range(10_000, 10_000 + machine_alone_runs),

@@ -1,13 +1,19 @@
 """Tables and figures of the experiments, from the CSV files only (paper Figs. 2-6).
 
 Everything here reads ``episodes.csv`` / ``trace.csv`` as written by the shared-control
-recipe, so a figure can be redrawn from a finished run without re-running anything.
+recipe, so a figure can be redrawn from a finished run without re-running anything. A
+table is read whole or not at all (:func:`read_table`): a file cut mid-row, a ragged or
+malformed row and a missing column are refused with the path and line, never summarised
+from what could be parsed.
 """
 
 from __future__ import annotations
 
+import csv
+import io
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import matplotlib
@@ -17,12 +23,105 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from dcsc_torchrl.config import UsageError  # noqa: E402
 from dcsc_torchrl.methods import BEST_CONSTANT, METHODS  # noqa: E402
+from dcsc_torchrl.runlog import write_atomic  # noqa: E402
 from dcsc_torchrl.tasks import get_task  # noqa: E402
 
 REPORT_ORDER = [*(name for name, m in METHODS.items() if m.kind != "sweep"), BEST_CONSTANT.name]
 """The rows of the report's tables: every method, the constant sweep by its best beta."""
 LEARNED = tuple(name for name, m in METHODS.items() if m.kind in ("learned", "frozen"))
+
+
+CELL_COLUMNS = ("operator", "pretrain_seed", "method", "phase")
+"""The columns every table of a run has: which cell and method a row is of."""
+TRACE_COLUMNS = (*CELL_COLUMNS, "seed", "step", "reward", "human_confidence", "machine_confidence",
+                 "confidence_ratio")
+CALIBRATION_COLUMNS = ("b_m_p10", "b_m_p50", "b_m_p90", "gap_low_b_m", "gap_high_b_m", "spearman_b_m_gap")
+NUMBERS = ("pretrain_seed", "group", "seed", "step", "reward", "success", "steps", "path_length", "return",
+           "constant_beta", "mean_beta", "human_confidence", "machine_confidence", "confidence_ratio",
+           *CALIBRATION_COLUMNS)
+"""The columns that hold numbers (an empty cell is a missing one), in whichever table has them."""
+
+
+class TableError(UsageError):
+    """A results table that cannot be read whole: cut short, ragged, malformed or missing a column."""
+
+
+def read_table(path: str | os.PathLike, columns: Sequence[str] = ()) -> pd.DataFrame:
+    """A results CSV, read whole or refused with its path and line.
+
+    Every row must have the header's fields, the file must end with a line break (every
+    writer of the project ends it so: a file without one was cut mid-row, by a crash during
+    a copy), ``columns`` must be there, and each of :data:`NUMBERS` it has must hold numbers.
+
+    Raises:
+        TableError: one line naming the path (and the line or column).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise TableError(f"no table at {path}")
+    text = path.read_text(encoding="utf-8", errors="replace")
+    if not text.strip():
+        raise TableError(f"{path} is empty")
+    reader = csv.reader(io.StringIO(text))
+    header = next(reader)
+    missing = [column for column in columns if column not in header]
+    if missing:
+        raise TableError(f"{path} has no column {', '.join(missing)} (it was not written by this version of dcsc?)")
+    for row in reader:
+        if len(row) != len(header):
+            raise TableError(f"{path}, line {reader.line_num}: {len(row)} fields, the header has {len(header)}")
+    if not text.endswith("\n"):
+        raise TableError(f"{path}, line {reader.line_num}: cut short (no line break at the end): the file is not whole")
+    frame = pd.read_csv(io.StringIO(text))
+    for column in (c for c in NUMBERS if c in frame.columns):
+        values = frame[column] if frame[column].dtype == bool else frame[column].replace({"True": 1, "False": 0})
+        numbers = pd.to_numeric(values, errors="coerce")
+        bad = numbers.isna() & frame[column].notna()
+        if bad.any():
+            row = int(bad.to_numpy().nonzero()[0][0])
+            raise TableError(f"{path}, line {row + 2}: column {column} holds {frame[column].iloc[row]!r}, not a number")
+        frame[column] = numbers
+    return frame
+
+
+def episode_table(results_dir: Path, task: str) -> pd.DataFrame:
+    """``episodes.csv`` of a task's results, checked (:func:`read_table`)."""
+    return read_table(results_dir / "episodes.csv", (*CELL_COLUMNS, "group", "seed", *get_task(task).metrics))
+
+
+def parse_vector(text: str) -> np.ndarray:
+    """A vector as a CSV cell holds it (``"[0.1, -0.2]"``), read as numbers only: no code runs.
+
+    Examples:
+        >>> parse_vector("[0.5, nan]").tolist()
+        [0.5, nan]
+    """
+    try:
+        return np.array([float(x) for x in str(text).strip().removeprefix("[").removesuffix("]").split(",")])
+    except ValueError:
+        raise TableError(f"expected a list of numbers such as [0.1, -0.2], got {text!r}") from None
+
+
+def theta_table(path: Path) -> pd.DataFrame:
+    """``theta.csv``, checked (:func:`read_table`), its ``theta`` cells as vectors (``value``)."""
+    theta = read_table(path, (*CELL_COLUMNS, "theta"))
+    try:
+        return theta.assign(value=theta["theta"].map(parse_vector))
+    except TableError as err:
+        raise TableError(f"{path}: column theta: {err}") from None
+
+
+def group_size(frame: pd.DataFrame) -> str:
+    """The scenarios per validation group of the rows: ``"10"``, ``"2-3"`` for unequal groups, ``"0"``."""
+    sizes = frame.groupby("group")["seed"].nunique()
+    low, high = (int(sizes.min()), int(sizes.max())) if len(sizes) else (0, 0)
+    return str(low) if low == high else f"{low}-{high}"
+
+
+QUICK_NOTE = ("**A `--quick` run.** Its tiny setting (a few short scenarios) tests the code paths, not the "
+              "method: these numbers say nothing about DC-SC.\n")
 
 
 def method_label(task: str, method: str) -> str:
@@ -90,17 +189,23 @@ def summary_table(frame: pd.DataFrame, task: str, by: str | None = None) -> str:
     return "\n".join(lines)
 
 
-def write_task_summary(results_dir: str | os.PathLike, task: str, main_operator: str, main_seed: int) -> Path:
+def write_task_summary(results_dir: str | os.PathLike, task: str, main_operator: str, main_seed: int, *,
+                       quick: bool = False) -> Path:
     """``summary.md`` of one task: the paper's table (main operator, first pretraining seed),
-    its per-group table, and the beyond-the-paper tables (every preset, every seed)."""
+    its per-group table, and the beyond-the-paper tables (every preset, every seed).
+
+    A ``quick`` run's summary says first that its numbers test the code paths, not the method.
+    """
     results_dir = Path(results_dir)
-    episodes = pd.read_csv(results_dir / "episodes.csv")
+    episodes = episode_table(results_dir, task)
     val = with_best_constant(episodes[episodes["phase"] == "validation"])
     main = val[(val["operator"] == main_operator) & (val["pretrain_seed"] == main_seed)]
+    setting = "a quick run's tiny setting" if quick else "the paper's setting"
     parts = [
         f"# {task}: validation results\n",
-        f"Operator `{main_operator}`, pretraining seed {main_seed}, {main['seed'].nunique()} scenarios "
-        "(the paper's setting). Mean ± 95% CI (normal approximation).\n",
+        *([QUICK_NOTE] if quick else []),
+        f"Operator `{main_operator}`, pretraining seed {main_seed}, {main['seed'].nunique()} scenarios in groups "
+        f"of {group_size(main)} ({setting}). Mean ± 95% CI (normal approximation).\n",
         summary_table(main, task),
         "\n## Per group of scenarios (paper Figs. 2 / 4)\n",
         summary_table(main, task, by="group"),
@@ -115,7 +220,8 @@ def write_task_summary(results_dir: str | os.PathLike, task: str, main_operator:
         "",
     ]
     path = results_dir / "summary.md"
-    path.write_text("\n".join(parts))
+    text = "\n".join(parts)
+    write_atomic(path, lambda f: f.write(text))
     return path
 
 
@@ -194,13 +300,12 @@ def _theta_section(results_dir: Path) -> list[str]:
     path = results_dir / "theta.csv"
     if not path.exists():
         return []
-    theta = pd.read_csv(path)
+    theta = theta_table(path)
     if theta.empty:
         return []
     lines = ["\n## θ over the online updates (first / after collaboration / last, mean over cells)\n",
              "| method | updates per cell (collaboration / validation) | θ first | θ after collaboration | θ last |",
              "|---|---|---|---|---|"]
-    theta["value"] = theta["theta"].map(lambda text: np.array(eval(text, {})))
     for method, sub in theta.groupby("method", sort=False):
         cells = list(sub.groupby(["operator", "pretrain_seed"]))
         def pick(frame, phase=None, last=True):
@@ -211,7 +316,7 @@ def _theta_section(results_dir: Path) -> list[str]:
         last = np.mean([pick(c) for _, c in cells], axis=0)
         n_collab = np.mean([(c["phase"] == "collaboration").sum() for _, c in cells])
         n_val = np.mean([(c["phase"] == "validation").sum() for _, c in cells])
-        fmt = lambda v: ", ".join(f"{x:.3f}" for x in np.atleast_1d(v))  # noqa: E731
+        fmt = lambda v: ", ".join("–" if np.isnan(x) else f"{x:.3f}" for x in np.atleast_1d(v))  # noqa: E731
         lines.append(f"| {method} | {n_collab:.0f} / {n_val:.0f} | {fmt(first)} | {fmt(collab)} | {fmt(last)} |")
     return lines
 
@@ -220,8 +325,8 @@ def _calibration_section(results_dir: Path) -> list[str]:
     path = results_dir / "calibration.csv"
     if not path.exists():
         return []
-    calibration = pd.read_csv(path)
-    columns = ["b_m_p10", "b_m_p50", "b_m_p90", "gap_low_b_m", "gap_high_b_m", "spearman_b_m_gap"]
+    columns = list(CALIBRATION_COLUMNS)
+    calibration = read_table(path, ["operator", *columns])
     pooled = calibration.groupby("operator")[columns].mean()
     lines = ["\n## Machine confidence on the calibration frames (operator alone, mean over seeds)\n",
              "b_m percentiles with the calibrated unit, and the critic's Q(s, a_machine) − Q(s, a_operator) "
@@ -233,9 +338,10 @@ def _calibration_section(results_dir: Path) -> list[str]:
     return lines
 
 
-def _save(fig: plt.Figure, path: Path) -> Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+def _save(fig: plt.Figure, path: Path, *, tight: bool = True) -> Path:
+    if tight:
+        fig.tight_layout()
+    write_atomic(path, lambda f: fig.savefig(f, dpi=110, format="png"), binary=True)
     plt.close(fig)
     return path
 
@@ -255,7 +361,7 @@ def plot_performance(frame: pd.DataFrame, task: str, path: Path, title: str) -> 
             ax.bar(np.arange(len(groups)) + i * width - 0.4 + width / 2, means, width, yerr=errs, capsize=2,
                    label=method_label(task, method))
         ax.set_xticks(np.arange(len(groups)), [f"group {g}" for g in groups])
-        ax.set_xlabel("scenario group (10 scenarios each)")
+        ax.set_xlabel(f"scenario group ({group_size(frame)} scenarios each)")
         ax.set_ylabel({"success": "success rate", "steps": "average steps", "path_length": "average path length",
                        "return": "average cumulative reward"}[metric])
         ax.grid(axis="y", alpha=0.3)
@@ -312,8 +418,8 @@ def plot_constant_sweep(episodes: pd.DataFrame, task: str, path: Path, title: st
 
 
 def plot_theta(theta: pd.DataFrame, path: Path, title: str) -> Path:
-    """theta over the online updates of every cell, one panel per learned arbiter (and dimension)."""
-    theta = theta.assign(value=theta["theta"].map(lambda text: np.atleast_1d(eval(text, {}))))
+    """theta over the online updates of every cell, one panel per learned arbiter (and dimension);
+    ``theta`` as :func:`theta_table` reads it."""
     methods = list(dict.fromkeys(theta["method"]))
     fig, axes = plt.subplots(1, len(methods), figsize=(5 * len(methods), 3.6), squeeze=False)
     dims = ("ρ", "σ", "τ")
@@ -399,16 +505,14 @@ def plot_uav_trajectories(trace: pd.DataFrame, scenario_seed: int, path: Path, t
             ax.plot(points[:, 0], points[:, 1], points[:, 2], color=color, ls=style, lw=1.8,
                     label=method_label("uav", method))
     ax.legend(fontsize=8)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, tight=False)
 
 
 def write_task_figures(results_dir: str | os.PathLike, task: str, main_operator: str, main_seed: int) -> list[Path]:
     """Every figure of one task into ``results_dir`` (PNG)."""
     results_dir = Path(results_dir)
-    episodes = pd.read_csv(results_dir / "episodes.csv")
-    trace = pd.read_csv(results_dir / "trace.csv")
+    episodes = episode_table(results_dir, task)
+    trace = read_table(results_dir / "trace.csv", TRACE_COLUMNS)
     val = with_best_constant(episodes[(episodes["phase"] == "validation") & (episodes["operator"] == main_operator)
                                       & (episodes["pretrain_seed"] == main_seed)])
     trace = trace[trace["phase"] == "validation"]
@@ -425,7 +529,7 @@ def write_task_figures(results_dir: str | os.PathLike, task: str, main_operator:
         paths.append(plot_constant_sweep(episodes, task, results_dir / "fig_constant_beta.png",
                                          f"{name}: success against a constant β (validation)"))
     if (results_dir / "theta.csv").exists() and (results_dir / "theta.csv").stat().st_size > 1:
-        theta = pd.read_csv(results_dir / "theta.csv")
+        theta = theta_table(results_dir / "theta.csv")
         if len(theta):
             paths.append(plot_theta(theta, results_dir / "fig_theta.png", f"{name}: θ over the online updates"))
     if spec.plot_trajectories is not None:

@@ -1,16 +1,51 @@
-"""One wide CSV table per run, flushed row by row, its learning-curve figure, and progress lines."""
+"""One wide CSV table per run, flushed row by row, its learning-curve figure, progress lines,
+and the atomic writer of every results file.
+
+A write that fails (a full disk, a folder made read-only) leaves what was on disk before
+as it was and raises an ``OSError`` that names the file: ``dcsc`` reports it in one line.
+"""
 
 from __future__ import annotations
 
+import csv
 import math
 import os
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, TextIO
+from typing import IO, Any, TextIO
 
 import pandas as pd
+
+
+def _naming(err: OSError, path: Path) -> OSError:
+    """``err`` as an ``OSError`` of the same kind naming ``path`` (a failed ``write`` names no file)."""
+    return type(err)(err.errno, err.strerror or str(err), str(path)) if err.errno else err
+
+
+def write_atomic(path: str | os.PathLike, write: Callable[[IO], Any], *, binary: bool = False) -> Path:
+    """Writes ``path`` through ``write(file)`` into ``<path>.tmp``, then renames it over ``path``.
+
+    A reader never sees half a file, and a write that fails (a full disk) leaves the old
+    file as it was, removes the temporary one and raises an ``OSError`` naming ``path``.
+
+    Examples:
+        >>> import tempfile
+        >>> path = Path(tempfile.mkdtemp()) / "a.txt"
+        >>> write_atomic(path, lambda f: f.write("one line\\n")).read_text()
+        'one line\\n'
+    """
+    path = Path(path)
+    tmp = path.with_name(f"{path.name}.tmp")
+    try:
+        with open(tmp, "wb") if binary else open(tmp, "w", newline="", encoding="utf-8") as f:
+            write(f)
+        os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise _naming(err, path) from err
+    return path
 
 
 class Progress:
@@ -95,7 +130,9 @@ class RunLog:
 
     The column order is fixed by the first row (or ``columns``); a run that stops halfway
     keeps every row written. A resumed run calls :meth:`truncate` to drop the rows logged
-    after its checkpoint, so the resumed table equals an uninterrupted one.
+    after its checkpoint, so the resumed table equals an uninterrupted one. Nothing is
+    written (not even the folder) before the first :meth:`append`, which refuses a file of
+    other columns there (:meth:`check_header`) and leaves no half row when a write fails.
 
     Args:
         path: the CSV file.
@@ -112,9 +149,35 @@ class RunLog:
     def __init__(self, path: str | os.PathLike, columns: list[str]) -> None:
         self.path = Path(path)
         self.columns = list(columns)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._checked = False
+
+    def check_header(self) -> None:
+        """Refuses a file there whose header is not this log's columns: rows appended to it would
+        sit under other columns (a table of another version, another table). The first
+        :meth:`append` checks it; a caller may check before any work.
+
+        Raises:
+            ValueError: one line naming the file.
+        """
+        if not self.path.exists() or self.path.stat().st_size == 0:
+            return
+        with open(self.path, newline="", encoding="utf-8", errors="replace") as f:
+            header = next(csv.reader(f), [])
+        if header != self.columns:
+            raise ValueError(f"{self.path} has other columns than this log's ({','.join(header)[:80]}): move it "
+                             "away, or write to another folder")
 
     def append(self, row: Mapping[str, object]) -> None:
+        """Appends ``row`` (on disk when this returns); a write that fails leaves the file as it was.
+
+        Raises:
+            ValueError: the file there has other columns (:meth:`check_header`).
+            OSError: the write failed (a full disk), naming the file; no partial row is left.
+        """
+        if not self._checked:
+            self.check_header()
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._checked = True
         unknown = set(row) - set(self.columns)
         if unknown:
             raise KeyError(f"columns {sorted(unknown)} are not in this log's columns {self.columns}")
@@ -122,11 +185,18 @@ class RunLog:
             if isinstance(value, float) and math.isnan(value):
                 raise ValueError(f"refusing to log NaN for column {key!r}")
         frame = pd.DataFrame([{c: row.get(c) for c in self.columns}], columns=self.columns)
-        header = not self.path.exists() or self.path.stat().st_size == 0
-        with open(self.path, "a", newline="") as f:
-            frame.to_csv(f, header=header, index=False)
-            f.flush()
-            os.fsync(f.fileno())
+        size = self.path.stat().st_size if self.path.exists() else 0
+        data = memoryview(frame.to_csv(header=size == 0, index=False).encode("utf-8"))
+        fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        try:
+            while data:
+                data = data[os.write(fd, data):]
+            os.fsync(fd)
+        except OSError as err:
+            os.ftruncate(fd, size)  # no half row left for the next append to run on from
+            raise _naming(err, self.path) from err
+        finally:
+            os.close(fd)
 
     def read(self) -> pd.DataFrame:
         if not self.path.exists():

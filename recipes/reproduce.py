@@ -18,38 +18,57 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-import pandas as pd
 import torch
+import yaml
 
 from dcsc_torchrl.cli import Parser, add_reproduce_options
+from dcsc_torchrl.config import UsageError, writable_folder
 from dcsc_torchrl.methods import METHOD_NAMES
-from dcsc_torchrl.report import write_task_figures, write_task_summary
+from dcsc_torchrl.report import CELL_COLUMNS, read_table, write_task_figures, write_task_summary
+from dcsc_torchrl.runlog import write_atomic
 from dcsc_torchrl.tasks import TASK_NAMES
-from recipes.shared_control import Executor, checked_grid, local_executor, run_grid
+from recipes.shared_control import RUN_RECORD, Executor, checked_grid, local_executor, run_grid
 
 
 def _traced_cell(task_dir: Path) -> tuple[str, int]:
     """The operator and pretraining seed whose scenario 0 was traced (the paper's setting)."""
-    trace = pd.read_csv(task_dir / "trace.csv")
+    trace = read_table(task_dir / "trace.csv", CELL_COLUMNS)
+    if trace.empty:
+        raise UsageError(f"{task_dir / 'trace.csv'} has no rows: the traced cell did not finish")
     return str(trace["operator"].iloc[0]), int(trace["pretrain_seed"].iloc[0])
 
 
+def _quick(task_dir: Path) -> bool:
+    """Whether the run's record says it was a ``--quick`` run (an older record does not say: no)."""
+    record = task_dir / RUN_RECORD
+    return bool(record.exists() and (yaml.safe_load(record.read_text()) or {}).get("quick", False))
+
+
 def report(results: Path, wall_seconds: float | None = None) -> Path:
-    """Redraws every task's summary and figures from its CSVs, and the joint ``summary.md``."""
+    """Redraws every task's summary and figures from its CSVs, and the joint ``summary.md``.
+
+    Raises:
+        UsageError: ``results`` holds no task's ``episodes.csv``, or a table is not whole
+            (:func:`~dcsc_torchrl.report.read_table`).
+    """
+    tasks = [task for task in TASK_NAMES if (results / task / "episodes.csv").is_file()]
+    if not tasks:
+        where = " or ".join(f"{task}/episodes.csv" for task in TASK_NAMES)
+        raise UsageError(f"--out {results}: no results there (no {where}); run dcsc run or dcsc reproduce first")
+    writable_folder(results)
     parts = ["# DC-SC reproduction: results\n"]
     if wall_seconds is not None:
         parts.append(f"Wall time of the whole run: {wall_seconds / 60:.1f} min.\n")
-    for task in TASK_NAMES:
+    for task in tasks:
         task_dir = results / task
-        if not (task_dir / "episodes.csv").exists():
-            continue
         operator, seed = _traced_cell(task_dir)
-        summary = write_task_summary(task_dir, task, operator, seed)
+        summary = write_task_summary(task_dir, task, operator, seed, quick=_quick(task_dir))
         write_task_figures(task_dir, task, operator, seed)
         body = summary.read_text().replace("# ", "## ", 1).replace("\n## ", "\n### ")
         parts.append(body)
     path = (results / "summary.md").resolve()
-    path.write_text("\n".join(parts))
+    text = "\n".join(parts)
+    write_atomic(path, lambda f: f.write(text))
     return path
 
 

@@ -22,21 +22,30 @@ the figures ``fig_*.png``. Each cell writes its rows to ``cells/<operator>-seed<
 again from the finished cells (:func:`gather`, the one writer of these files, which
 ``dcsc sweep`` uses too), so the folder never describes two different sets of cells.
 
-Resume: running the same command again skips the cells with a ``cell.json``. The config
-the cells ran with is kept in ``run_config.yaml``; a run into a folder whose record differs
-(or into an older folder with no record) is refused with the keys that differ, unless
-``--fresh`` deletes the old results first. Temporary files of a killed run are removed.
+The door (:func:`checked_grid`, shared by ``dcsc run``, ``dcsc sweep`` and ``dcsc
+reproduce``): the whole config, the presets, methods and checkpoints named, and the
+results folder are checked before any frame is stepped or any folder is written; a
+repeated preset, seed or method is dropped with a warning, so each cell is run once.
+
+Resume: running the same command again (from any folder) skips the cells with a
+``cell.json``. The config the cells ran with is kept in ``run_config.yaml``; a run into a
+folder whose record differs (or into an older folder with no record) is refused with the
+keys that differ, unless ``--fresh`` deletes the old results first or no cell of the
+earlier config finished. One run writes a folder at a time (:func:`folder_lock`).
+Temporary files of a killed run are removed.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import fcntl
 import json
 import os
 import shutil
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -48,7 +57,16 @@ from omegaconf import DictConfig
 
 from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
 from dcsc_torchrl.cli import Parser, add_run_options
-from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
+from dcsc_torchrl.config import (
+    ConfigError,
+    UsageError,
+    config_diff,
+    distinct,
+    load_config,
+    to_plain,
+    warn,
+    writable_folder,
+)
 from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.methods import METHOD_NAMES, check_task_methods, task_methods
 from dcsc_torchrl.networks import machine_from_checkpoint
@@ -62,7 +80,7 @@ from dcsc_torchrl.protocol import (
     run_cell,
 )
 from dcsc_torchrl.report import write_task_figures, write_task_summary
-from dcsc_torchrl.runlog import Progress
+from dcsc_torchrl.runlog import Progress, write_atomic
 from dcsc_torchrl.tasks import TASK_NAMES, Task, get_task
 from dcsc_torchrl.transforms import HumanConfidenceTransform
 
@@ -74,12 +92,42 @@ OUTPUTS = (*(f"{name}.csv" for name in TABLES), "summary.md", "failed_cells.csv"
 
 
 def task_config(task: Task, overrides: Sequence[str] = (), *, quick: bool = False) -> DictConfig:
-    """The shared-control config of ``task`` (its yaml over ``shared_control.yaml``), checked:
-    the yaml's keys and types (:func:`~dcsc_torchrl.config.load_config`), then every group's
-    values by the object that will use them (:func:`cell_settings`)."""
+    """The shared-control config of ``task`` (its yaml over ``shared_control.yaml``), checked whole:
+    the yaml's keys, types and ranges (:func:`~dcsc_torchrl.config.load_config`), every group's
+    values by the object that will use them (:func:`cell_settings`), the validation groups, the
+    operator presets named and the pretraining recipe's settings (:func:`pretrain_config`)."""
     cfg = load_config(RECIPES / task.config, overrides, quick=quick)
     cell_settings(cfg)
+    check_groups(cfg)
+    check_names("operator.presets", "operator preset", cfg.operator.presets, list(PRESETS))
+    check_names("operator.main", "operator preset", [cfg.operator.main], list(PRESETS))
+    if not cfg.pretrain.shipped:
+        pretrain_config(task, cfg, cfg.pretrain.seeds[0], quick=quick)
     return cfg
+
+
+def check_groups(cfg: DictConfig) -> None:
+    """Refuses a ``protocol.group_size`` that does not split the validation scenarios into equal groups."""
+    size, count = cfg.protocol.group_size, cfg.scenarios.validation_scenarios
+    if count % size:
+        raise ConfigError(f"protocol.group_size: expected a divisor of scenarios.validation_scenarios ({count}), "
+                          f"got {size} (the groups would differ in size)")
+
+
+def pretrain_config(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -> DictConfig:
+    """The config that pretrains seed ``seed``'s machine of ``cfg``: the task's pretraining yaml with
+    ``pretrain.recipe``'s settings, written to ``{pretrain.out_dir}/seed{seed}/``.
+
+    Raises:
+        ConfigError: a setting of ``pretrain.recipe`` is refused by the pretraining yaml (named).
+    """
+    yaml_path = RECIPES / f"{task.pretrain_recipe.rsplit('.', 1)[1]}.yaml"
+    out_dir = checkpoint_path(cfg.pretrain.out_dir, seed).parent
+    settings = [*cfg.pretrain.recipe, f"seed={seed}", f"logger.out_dir={out_dir}"]
+    try:
+        return load_config(yaml_path, settings, quick=quick)
+    except ConfigError as err:
+        raise ConfigError(f"pretrain.recipe: {err}") from None
 
 
 def _human_settings(**group: Any) -> dict[str, Any]:
@@ -147,26 +195,24 @@ def pretrained_machine(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -
 
     path = machine_checkpoint(task, cfg, seed)
     if cfg.pretrain.shipped:
-        return machine_from_checkpoint(load_checkpoint(path, task=task.name), task)
+        return machine_from_checkpoint(load_checkpoint(path, task=task.name, machine=True), task)
     recipe = importlib.import_module(task.pretrain_recipe)
-    settings = [*cfg.pretrain.recipe, f"seed={seed}", f"logger.out_dir={path.parent}"]
     if not path.exists():
         print(f"{task.name}: no checkpoint at {path}, pretraining seed {seed} first", file=sys.stderr, flush=True)
-        recipe.train(load_config(recipe.CONFIG, settings, quick=quick))
-    data = load_checkpoint(path, task=task.name)
+        recipe.train(pretrain_config(task, cfg, seed, quick=quick))
+    data = load_checkpoint(path, task=task.name, machine=True)
     budget = data["config"].get("train", {}).get("episodes")  # a weights-only file has none
     if budget is not None and not data.get("finished", False) and data.get("episodes", budget) < budget:
         print(f"{task.name}: {path} stopped at episode {data['episodes']}, resuming", file=sys.stderr, flush=True)
-        recipe.train(load_config(recipe.CONFIG, settings, quick=quick), resume=True)
-        data = load_checkpoint(path, task=task.name)
+        recipe.train(pretrain_config(task, cfg, seed, quick=quick), resume=True)
+        data = load_checkpoint(path, task=task.name, machine=True)
     return machine_from_checkpoint(data, task)
 
 
 def write_csv(rows: list[dict], path: Path) -> None:
-    """All rows so far, written atomically (temp file + rename)."""
-    tmp = path.with_suffix(".csv.tmp")
-    pd.DataFrame(rows).to_csv(tmp, index=False)
-    os.replace(tmp, path)
+    """All rows so far, written atomically (:func:`~dcsc_torchrl.runlog.write_atomic`: a full disk
+    leaves the file as it was, and an error naming it)."""
+    write_atomic(path, lambda f: pd.DataFrame(rows).to_csv(f, index=False))
 
 
 def cell_grid(presets: Sequence[str], seeds: Sequence[int], main: str) -> tuple[list[tuple[int, str, bool]], str]:
@@ -204,32 +250,39 @@ class Cell:
 
 @dataclass
 class TaskGrid:
-    """One task's protocol config and cells, in the order of :func:`cell_grid`."""
+    """One task's protocol config and cells, in the order of :func:`cell_grid`.
+
+    ``cfg.pretrain.out_dir`` is absolute (the cells may run in other processes or nodes);
+    ``pretrain_out_dir`` is as the command gave it, what the run's record keeps.
+    """
 
     task: str
     cfg: DictConfig
     cells: list[Cell]
     main_operator: str
     main_seed: int
+    pretrain_out_dir: str
+    quick: bool
 
 
-def make_grid(task: str, cfg: DictConfig, presets: Sequence[str], seeds: Sequence[int]) -> TaskGrid:
-    """The cells of ``task`` for ``presets`` x ``seeds``; ``pretrain.out_dir`` made absolute.
-
-    An absolute ``pretrain.out_dir`` lets the cells run in other processes or nodes, and
-    makes the run's record the same from wherever it was started.
-    """
-    cfg.pretrain.out_dir = str(Path(cfg.pretrain.out_dir).resolve())
-    grid, main_operator = cell_grid(list(presets), [int(s) for s in seeds], cfg.operator.main)
+def make_grid(task: str, cfg: DictConfig, presets: Sequence[str], seeds: Sequence[int], *,
+              quick: bool = False) -> TaskGrid:
+    """The cells of ``task`` for ``presets`` x ``seeds`` (each once, in order); ``pretrain.out_dir``
+    made absolute, so that the cells can run in other processes or nodes."""
+    given = str(cfg.pretrain.out_dir)
+    cfg.pretrain.out_dir = str(Path(given).resolve())
+    seeds = list(dict.fromkeys(int(s) for s in seeds))
+    grid, main_operator = cell_grid(list(dict.fromkeys(presets)), seeds, cfg.operator.main)
     cells = [Cell(task, preset, seed, trace=traced) for seed, preset, traced in grid]
-    return TaskGrid(task, cfg, cells, main_operator, int(seeds[0]))
+    return TaskGrid(task, cfg, cells, main_operator, seeds[0], given, quick)
 
 
-def check_names(kind: str, names: Sequence[str], known: Sequence[str]) -> list[str]:
-    """``names`` when every one is in ``known``; else a :class:`ConfigError` listing the known ones."""
+def check_names(key: str, kind: str, names: Sequence[str], known: Sequence[str]) -> list[str]:
+    """``names`` when every one is in ``known``; else a :class:`ConfigError` naming ``key`` and listing the known ones."""
     unknown = [name for name in names if name not in known]
     if unknown:
-        raise ConfigError(f"unknown {kind} {', '.join(map(repr, unknown))}: expected one of {', '.join(known)}")
+        raise ConfigError(f"{key}: unknown {kind} {', '.join(map(repr, unknown))}: expected one of "
+                          f"{', '.join(known)}")
     return list(names)
 
 
@@ -256,9 +309,7 @@ def write_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: Path,
     record = {"task": cell.task, "operator": cell.operator, "pretrain_seed": cell.pretrain_seed,
               "methods": list(methods), "seconds": time.perf_counter() - start,
               "hula_threshold": result.hula_threshold, **(info or {})}
-    tmp = directory / "cell.json.tmp"
-    tmp.write_text(json.dumps(record, indent=2))
-    os.replace(tmp, directory / "cell.json")  # last: the cell counts as done once this exists
+    write_atomic(directory / "cell.json", lambda f: f.write(json.dumps(record, indent=2)))  # last: the cell is done
     return record
 
 
@@ -289,25 +340,71 @@ def gather(out: Path, grid: TaskGrid, failed: Sequence[dict[str, Any]] = ()) -> 
             (task_dir / f"{name}.csv").unlink(missing_ok=True)
     summary = task_dir / "summary.md"
     if done:
-        write_task_summary(task_dir, grid.task, grid.main_operator, grid.main_seed)
+        write_task_summary(task_dir, grid.task, grid.main_operator, grid.main_seed, quick=grid.quick)
         if (task_dir / "trace.csv").exists():
             write_task_figures(task_dir, grid.task, grid.main_operator, grid.main_seed)
     else:
-        summary.write_text(f"# {grid.task}: no cell finished\n")
+        write_atomic(summary, lambda f: f.write(f"# {grid.task}: no cell finished\n"))
     failed_csv = task_dir / "failed_cells.csv"
     if failed:
         write_csv(list(failed), failed_csv)
-        summary.write_text(summary.read_text() + failed_section(failed))
+        text = summary.read_text() + failed_section(failed)
+        write_atomic(summary, lambda f: f.write(text))
     else:
         failed_csv.unlink(missing_ok=True)
     return summary
 
 
 def run_record(grid: TaskGrid, methods: Sequence[str]) -> dict[str, Any]:
-    """What the results of ``grid`` depend on: its config (but ``threads``), methods and cells."""
+    """What the results of ``grid`` depend on: its config (but ``threads``; ``pretrain.out_dir`` as
+    the command gave it), methods and cells; and whether it is a ``--quick`` run (for the summary)."""
     config = to_plain(grid.cfg)
     config.pop("threads", None)
-    return {"config": config, "methods": list(methods), "cells": [cell.name for cell in grid.cells]}
+    config["pretrain"]["out_dir"] = grid.pretrain_out_dir
+    return {"config": config, "methods": list(methods), "cells": [cell.name for cell in grid.cells],
+            "quick": grid.quick}
+
+
+def _comparable(record: Mapping[str, Any]) -> dict[str, Any]:
+    """``record`` as :func:`prepare_results` compares it: ``pretrain.out_dir`` resolved from the
+    current folder (the same command from another folder, or an older record's absolute path,
+    is the same run), without the ``quick`` flag (it only words the summary)."""
+    record = json.loads(json.dumps(record))
+    record.pop("quick", None)
+    pretrain = record.get("config", {}).get("pretrain", {})
+    if "out_dir" in pretrain:
+        pretrain["out_dir"] = str(Path(pretrain["out_dir"]).resolve())
+    return record
+
+
+@contextlib.contextmanager
+def folder_lock(task_dir: Path) -> Iterator[Path]:
+    """Holds ``task_dir/.lock`` (``flock``) while a run writes ``task_dir``; released on exit.
+
+    The kernel releases the lock of a process that dies, so a killed run never blocks the
+    next one; the file stays (removing it would race with a run taking it).
+
+    Raises:
+        UsageError: another run holds the folder (its pid named).
+    """
+    task_dir.mkdir(parents=True, exist_ok=True)
+    path = task_dir / ".lock"
+    with open(path, "a+") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.seek(0)
+            holder = lock.read().strip() or "unknown"
+            raise UsageError(f"{task_dir} is in use by another dcsc run (pid {holder}): wait for it to end, "
+                             "or choose another --out") from None
+        lock.seek(0)
+        lock.truncate()
+        lock.write(f"{os.getpid()}\n")
+        lock.flush()
+        try:
+            yield path
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 def prepare_results(task_dir: Path, record: Mapping[str, Any], *, fresh: bool) -> None:
@@ -315,37 +412,41 @@ def prepare_results(task_dir: Path, record: Mapping[str, Any], *, fresh: bool) -
 
     A grid that keeps the config and methods and adds cells (more pretraining seeds or
     operators) extends the folder: its finished cells stay, the new ones run. ``fresh``
-    removes the earlier run's outputs (:data:`OUTPUTS`). The temporary files of a killed run
-    are removed in any case; the record is written to :data:`RUN_RECORD`.
+    removes the earlier run's outputs (:data:`OUTPUTS`), and so does another config when no
+    cell of the earlier one finished (nothing is lost: a run that stopped in its first cell
+    does not hold the folder). The temporary files of a killed run are removed in any case;
+    the record is written to :data:`RUN_RECORD`.
 
     Raises:
         ConfigError: ``task_dir`` holds results of another config, or of a run that kept no record.
     """
     record_path = task_dir / RUN_RECORD
     old_outputs = [path for pattern in OUTPUTS for path in task_dir.glob(pattern)]
+    if not fresh and record_path.exists():
+        old = _comparable(yaml.safe_load(record_path.read_text()) or {})
+        new = _comparable(record)
+        if set(old.get("cells", [])) <= set(new["cells"]):
+            old["cells"] = new["cells"]  # a grown grid: the cells done stay valid
+        changed = config_diff(old, new)
+        if changed and not list(task_dir.glob("cells/*/cell.json")):
+            warn(f"{task_dir}: no cell of its earlier config ({changed[0]}) finished; starting over with this one")
+            fresh = True
+        elif changed:
+            more = f"; and {len(changed) - 5} more" if len(changed) > 5 else ""
+            raise ConfigError(f"{task_dir} holds results of another config ({'; '.join(changed[:5])}{more}): "
+                              "pass --fresh to replace them, or choose another --out")
+    elif old_outputs and not fresh:
+        raise ConfigError(f"{task_dir} holds results of an earlier run with no {RUN_RECORD}: pass --fresh to "
+                          "replace them, or choose another --out")
     if fresh:
         for path in old_outputs:
             shutil.rmtree(path) if path.is_dir() else path.unlink()
         record_path.unlink(missing_ok=True)
-    elif record_path.exists():
-        old = yaml.safe_load(record_path.read_text()) or {}
-        new = json.loads(json.dumps(record))
-        if set(old.get("cells", [])) <= set(new["cells"]):
-            old["cells"] = new["cells"]  # a grown grid: the cells done stay valid
-        changed = config_diff(old, new)
-        if changed:
-            more = f"; and {len(changed) - 5} more" if len(changed) > 5 else ""
-            raise ConfigError(f"{task_dir} holds results of another config ({'; '.join(changed[:5])}{more}): "
-                              "pass --fresh to replace them, or choose another --out")
-    elif old_outputs:
-        raise ConfigError(f"{task_dir} holds results of an earlier run with no {RUN_RECORD}: pass --fresh to "
-                          "replace them, or choose another --out")
     for tmp in [*task_dir.glob("*.tmp"), *task_dir.glob("cells/*/*.tmp")]:
         tmp.unlink(missing_ok=True)
     task_dir.mkdir(parents=True, exist_ok=True)
-    tmp = record_path.with_suffix(".yaml.tmp")
-    tmp.write_text(yaml.safe_dump(json.loads(json.dumps(record)), sort_keys=False))
-    os.replace(tmp, record_path)
+    text = yaml.safe_dump(json.loads(json.dumps(record)), sort_keys=False)
+    write_atomic(record_path, lambda f: f.write(text))
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -398,36 +499,49 @@ def local_executor(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], 
 
 def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], executor: Executor, *,
              quick: bool = False, fresh: bool = False) -> GridResult:
-    """The one driver of the grid: claims each task's folder, runs the cells not done yet with
-    ``executor`` (:func:`local_executor`, or ``dcsc sweep``'s Ray tasks), then gathers every
-    task's outputs (:func:`gather`, the one writer), the failures reported."""
+    """The one driver of the grid: checks each task's folder can be written, locks it
+    (:func:`folder_lock`: one run at a time) and claims it (:func:`prepare_results`), runs the
+    cells not done yet with ``executor`` (:func:`local_executor`, or ``dcsc sweep``'s Ray
+    tasks), then gathers every task's outputs (:func:`gather`, the one writer), the failures
+    reported."""
     for grid in grids:
-        prepare_results(out / grid.task, run_record(grid, methods), fresh=fresh)
-    cells = [cell for grid in grids for cell in grid.cells]
-    todo = [cell for cell in cells if not cell.done(out)]
-    ran, failed = executor(out, grids, todo, methods, quick=quick) if todo else ([], [])
-    for grid in grids:
-        gather(out, grid, [row for row in failed if row["task"] == grid.task])
+        writable_folder(out / grid.task)
+    with contextlib.ExitStack() as locks:
+        for grid in grids:
+            locks.enter_context(folder_lock(out / grid.task))
+        for grid in grids:
+            prepare_results(out / grid.task, run_record(grid, methods), fresh=fresh)
+        cells = [cell for grid in grids for cell in grid.cells]
+        todo = [cell for cell in cells if not cell.done(out)]
+        ran, failed = executor(out, grids, todo, methods, quick=quick) if todo else ([], [])
+        for grid in grids:
+            gather(out, grid, [row for row in failed if row["task"] == grid.task])
     return GridResult(out, ran, [cell for cell in cells if cell not in todo], failed)
 
 
 def checked_grid(task_name: str, *, quick: bool = False, overrides: Sequence[str] = (),
-                 operators: Sequence[str] | None = None) -> TaskGrid:
-    """The cells of ``task_name`` (every operator preset, or ``operators``, x every pretraining seed).
+                 operators: Sequence[str] | None = None, seeds: Sequence[int] | None = None,
+                 option: str = "--operators") -> TaskGrid:
+    """The cells of ``task_name``: every operator preset (or ``operators``, given by ``option``)
+    x every pretraining seed (or ``seeds``), each once (a repeat is dropped with a warning).
 
-    Everything named (config keys, operator presets, the checkpoints there are) is checked
-    here, before any cell runs: a typo or a broken checkpoint is answered at once.
+    The whole config (:func:`task_config`), the presets named and the checkpoints there are
+    are checked here, before any cell runs: a typo or a broken checkpoint is answered at once.
     """
     task = get_task(task_name)
     cfg = task_config(task, overrides, quick=quick)
-    presets = check_names("operator preset", list(operators or cfg.operator.presets), list(PRESETS))
-    if cfg.pretrain.shipped and list(cfg.pretrain.seeds) != [0]:
-        raise ConfigError(f"pretrain.shipped=true: only pretraining seed 0 ships, but pretrain.seeds is "
-                          f"{list(cfg.pretrain.seeds)}: add pretrain.seeds=[0]")
-    for seed in cfg.pretrain.seeds:
+    presets = list(cfg.operator.presets)
+    if operators:
+        presets = check_names(option, "operator preset", distinct(option, operators), list(PRESETS))
+    seeds = list(cfg.pretrain.seeds) if seeds is None else list(seeds)
+    if cfg.pretrain.shipped and seeds != [0]:
+        raise ConfigError(f"pretrain.shipped=true: only pretraining seed 0 ships, but the seeds are {seeds}: "
+                          "add pretrain.seeds=[0]")
+    for seed in seeds:
         if not cfg.pretrain.shipped and checkpoint_path(cfg.pretrain.out_dir, seed).exists():
-            load_checkpoint(checkpoint_path(cfg.pretrain.out_dir, seed), task=task.name)  # a broken one: refused now
-    return make_grid(task.name, cfg, presets, list(cfg.pretrain.seeds))
+            # a broken or outdated one: refused now
+            load_checkpoint(checkpoint_path(cfg.pretrain.out_dir, seed), task=task.name, machine=True)
+    return make_grid(task.name, cfg, presets, seeds, quick=quick)
 
 
 def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False, overrides: Sequence[str] = (),
@@ -440,8 +554,9 @@ def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False
     earlier config, the checkpoints there are) is checked before a machine is loaded or pretrained.
     """
     if methods:  # named ones must be the task's (the default, every method, runs those the task defines)
+        methods = check_names("--methods", "method", distinct("--methods", methods), METHOD_NAMES)
         try:
-            check_task_methods(get_task(task_name), check_names("method", methods, METHOD_NAMES))
+            check_task_methods(get_task(task_name), methods)
         except ValueError as err:
             raise ConfigError(str(err)) from None
     methods = tuple(methods or METHOD_NAMES)

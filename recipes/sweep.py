@@ -60,12 +60,12 @@ from recipes.shared_control import (
     Executor,
     GridResult,
     TaskGrid,
+    check_names,
+    checked_grid,
     gather,
     machine_checkpoint,
-    make_grid,
     pretrained_machine,
     run_grid,
-    task_config,
     write_cell,
 )
 
@@ -75,14 +75,14 @@ __all__ = ["TABLES", "Cell", "GridResult", "TaskGrid", "gather", "main", "ray_ex
 
 
 def task_grid(task: str, sweep: DictConfig, overrides: Sequence[str] = (), *, quick: bool) -> TaskGrid:
-    """The cells of ``task``: the sweep's presets and seeds, else the protocol config's.
+    """The cells of ``task``: the sweep's presets and seeds, else the protocol config's, each once.
 
-    ``pretrain.out_dir`` is made absolute: the cells may run in other processes or nodes.
+    Checked whole before any cell runs, as ``dcsc run`` checks it
+    (:func:`~recipes.shared_control.checked_grid`); ``pretrain.out_dir`` is made absolute: the
+    cells may run in other processes or nodes.
     """
-    cfg = task_config(get_task(task), overrides, quick=quick)
-    presets = list(sweep.operators or cfg.operator.presets)
-    seeds = [int(seed) for seed in (sweep.pretrain_seeds or cfg.pretrain.seeds)]
-    return make_grid(task, cfg, presets, seeds)
+    return checked_grid(task, quick=quick, overrides=overrides, operators=sweep.operators,
+                        seeds=sweep.pretrain_seeds, option="operators")
 
 
 def _worker_setup() -> None:
@@ -113,7 +113,8 @@ def run_sweep_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: s
     directory = cell.directory(Path(out))
     directory.mkdir(parents=True, exist_ok=True)
     attempts = _count_attempt(directory)
-    machine, critic = machine_from_checkpoint(load_checkpoint(checkpoint, task=cell.task), get_task(cell.task))
+    machine, critic = machine_from_checkpoint(load_checkpoint(checkpoint, task=cell.task, machine=True),
+                                              get_task(cell.task))
     return write_cell(cell, cfg, methods, Path(out), machine, critic,
                       {"attempts": attempts, "host": socket.gethostname(), "pid": os.getpid()})
 
@@ -239,10 +240,8 @@ def sweep(args: argparse.Namespace) -> GridResult:
     """``dcsc sweep``: the configs checked, every cell not done yet run, every task gathered."""
     sweep_overrides, task_overrides = split_overrides(args.overrides)
     cfg = load_config(CONFIG, sweep_overrides, quick=args.quick)
-    methods = tuple(cfg.methods or METHOD_NAMES)
-    unknown = sorted({*cfg.tasks} - set(TASK_NAMES)) + sorted({*methods} - set(METHOD_NAMES))
-    if unknown:
-        raise ValueError(f"unknown tasks or methods {unknown}: tasks are {list(TASK_NAMES)}, methods {list(METHOD_NAMES)}")
+    check_names("tasks", "task", cfg.tasks, TASK_NAMES)
+    methods = tuple(check_names("methods", "method", cfg.methods or METHOD_NAMES, METHOD_NAMES))
     grids = [task_grid(task, cfg, task_overrides[task], quick=args.quick) for task in cfg.tasks]
     out = args.out or Path("results/quick" if args.quick else "results")
     result = run_sweep(out, grids, methods, quick=args.quick, retries=cfg.ray.retries,

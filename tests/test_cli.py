@@ -340,6 +340,8 @@ def test_a_grid_that_adds_cells_extends_the_folder_and_one_that_drops_cells_is_r
     task_dir = tmp_path / "lunarlander"
     record = {"config": {"seed": 0}, "methods": ["machine"], "cells": ["expert-seed0"]}
     prepare_results(task_dir, record, fresh=False)
+    (task_dir / "cells" / "expert-seed0").mkdir(parents=True)
+    (task_dir / "cells" / "expert-seed0" / "cell.json").write_text("{}")  # a finished cell: the folder is held
     grown = {**record, "cells": ["expert-seed0", "expert-seed1"]}
     prepare_results(task_dir, grown, fresh=False)
     assert yaml.safe_load((task_dir / RUN_RECORD).read_text())["cells"] == grown["cells"]

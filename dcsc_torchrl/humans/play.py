@@ -40,6 +40,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from dcsc_torchrl.batched_envs import LUNAR_ID, LUNAR_INFO_KEYS
 from dcsc_torchrl.checkpoint import load_checkpoint
+from dcsc_torchrl.config import writable_folder
 from dcsc_torchrl.humans.keyboard import KeyboardPilot, NoDisplayError
 from dcsc_torchrl.humans.operator_alone import operator_only_policy
 from dcsc_torchrl.networks import machine_from_checkpoint
@@ -87,7 +88,7 @@ def load_machine(path: Path) -> tuple[nn.Module, nn.Module]:
             f"no LunarLander checkpoint at {path}: run `dcsc pretrain lunarlander` first, "
             "pass --checkpoint PATH, or fly alone with --assist none"
         )
-    return machine_from_checkpoint(load_checkpoint(path, task=TASK.name), TASK)
+    return machine_from_checkpoint(load_checkpoint(path, task=TASK.name, machine=True), TASK)
 
 
 def assisting_machine(checkpoint: Path | None, cfg: DictConfig) -> tuple[nn.Module, nn.Module]:
@@ -172,19 +173,20 @@ class PlayRecorder:
     episode's end and on the way out, Ctrl-C included).
 
     Args:
-        out: the output folder (created).
+        out: the output folder (made at the first row; refused now when it cannot be written,
+            or when its ``episodes.csv`` has other columns).
         method: ``episodes.csv``'s method (``dcsc``, ``dcsc_centred`` or ``operator``).
         participant: the operator column.
         pretrain_seed: the machine's pretraining seed, where known.
     """
 
     def __init__(self, out: Path, method: str, participant: str, pretrain_seed: int | None = None) -> None:
-        self.out = Path(out)
-        self.out.mkdir(parents=True, exist_ok=True)
+        self.out = writable_folder(out)
         self.base = {"task": TASK.name, "operator": participant, "pretrain_seed": pretrain_seed, "method": method,
                      "phase": PHASE}
         self.session = time.strftime("%Y%m%dT%H%M%S")
         self.episodes = RunLog(self.out / "episodes.csv", EPISODE_COLUMNS)
+        self.episodes.check_header()
         self.trace: RunLog | None = None
         self._pending: list[dict[str, Any]] = []
 
@@ -305,6 +307,8 @@ def run_play(args: argparse.Namespace) -> None:
     confidence = HumanConfidenceTransform(**cfg.human)
     try:
         networks = assisting_machine(args.checkpoint, cfg) if args.assist == "dcsc" else None
+        method = assist_method(cfg) if networks is not None else "operator"
+        recorder = PlayRecorder(args.out, method, args.participant)  # its folder checked before the window opens
         render_env = gym.make(LUNAR_ID, render_mode="rgb_array")
         pilot = KeyboardPilot(frame_source=render_env.render, t_d=confidence.t_d)
     except (FileNotFoundError, NoDisplayError) as error:
@@ -313,8 +317,6 @@ def run_play(args: argparse.Namespace) -> None:
     machine, critic = networks if networks is not None else (None, None)
     policy = make_policy(env, machine, cfg)
     learner = make_learner(policy, critic, cfg) if machine is not None else None
-    method = assist_method(cfg) if machine is not None else "operator"
-    recorder = PlayRecorder(args.out, method, args.participant)
     print("arrow keys (or W/A/D): up = main engine, left/right = side engines; Esc quits")
     try:
         summaries = play(env, policy, pilot, args.episodes, seed=args.seed, learner=learner,
@@ -327,4 +329,5 @@ def run_play(args: argparse.Namespace) -> None:
         theta = f", theta {summary['theta']:.3f}" if "theta" in summary else ""
         print(f"episode {summary['episode']}: {outcome}, return {summary['return']:.1f}, "
               f"{summary['steps']} steps{theta}")
-    print(f"results in {recorder.out} (episodes.csv, trace.csv)")
+    written = [name for name in ("episodes.csv", "trace.csv") if (recorder.out / name).exists()]
+    print(f"results in {recorder.out} ({', '.join(written)})" if written else "nothing flown: nothing written")
