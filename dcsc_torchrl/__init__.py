@@ -23,7 +23,7 @@ from typing import Any
 _HOMES = {
     "arbiters": ["Arbiter", "CentredConfidenceArbiter", "ConfidenceArbiter", "ConstantArbiter",
                  "FrozenConfidenceArbiter", "HULAArbiter", "HumanOnlyArbiter", "MachineOnlyArbiter", "RuleArbiter",
-                 "centred_fusion_weight", "confidence_ratio", "fusion_weight"],
+                 "centred_fusion_weight", "confidence_ratio", "fusion_weight", "load_arbiter", "save_arbiter"],
     "confidence": ["human_confidence", "knowledge_update", "machine_confidence", "mc_dropout_uncertainty"],
     "losses": ["QCriticLoss", "ThetaLoss"],
     "machine": ["MCDropoutPolicy", "calibrated_uncertainty_scale"],

@@ -4,12 +4,25 @@ Every arbiter reads the two confidences (and, for HULA, the machine's uncertaint
 writes the same two keys, ``confidence_ratio`` (b_t, Eq. 18) and ``beta`` (the
 machine's share of authority in Eq. 14), so every method of the paper is the same
 pipeline with a different arbiter.
+
+Every frame is checked where it enters, at one reduction per tensor and no device sync
+(:func:`~dcsc_torchrl.confidence.check_values`): the two confidences in [0, 1], theta
+finite, the beta an arbiter gives in [0, 1] (a custom arbiter's too).
+
+An arbiter's whole state (theta, and the gain, threshold, value or frozen confidences
+its form was built with, with the form's name and ``dims``) is its ``state_dict``;
+loading the state of another form or ``dims`` is refused with one line.
+:func:`save_arbiter` / :func:`load_arbiter` write and read it as a checkpoint
+(atomic, ``weights_only``, of one task).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+import os
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -17,7 +30,9 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 
-from dcsc_torchrl.confidence import check_finite, check_finite_every_frame, check_in_range
+from dcsc_torchrl.confidence import check_in_range, check_values
+
+_EXTRA_STATE = "_extra_state"
 
 
 def confidence_ratio(machine_confidence: torch.Tensor, human_confidence: torch.Tensor) -> torch.Tensor:
@@ -43,7 +58,9 @@ def fusion_weight(theta: torch.Tensor, ratio: torch.Tensor) -> torch.Tensor:
 class Arbiter(TensorDictModuleBase):
     """Base arbiter: writes ``confidence_ratio`` (Eq. 18) and ``beta`` of shape ``[*batch, dims]``.
 
-    Subclasses define :meth:`machine_share`, the beta that Eq. 14 gives the machine.
+    Subclasses define :meth:`machine_share`, the beta that Eq. 14 gives the machine, and,
+    where their constructor takes numbers besides ``dims``, :meth:`arguments` and
+    :meth:`set_arguments` (they travel in the ``state_dict``'s extra state).
 
     Args:
         dims: number of action dimensions beta is given for (1 for a discrete
@@ -68,12 +85,14 @@ class Arbiter(TensorDictModuleBase):
         self.dims = int(dims)
         self.in_keys = list(in_keys) if in_keys is not None else list(self.default_in_keys)
         self.out_keys = list(out_keys)
+        self.register_load_state_dict_pre_hook(_refuse_another_form)
 
     def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
         """The machine's authority beta, broadcastable to ``[*batch, dims]``."""
         raise NotImplementedError
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def confidences(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(b_m, b_h)`` of the frame, each checked in [0, 1] (NaN refused) and of one shape."""
         machine_key, human_key = self.in_keys[:2]
         b_m = tensordict.get(machine_key, None)
         b_h = tensordict.get(human_key, None)
@@ -87,19 +106,122 @@ class Arbiter(TensorDictModuleBase):
             raise KeyError(
                 f"{name} reads {human_key!r}, which is missing: add HumanConfidenceTransform to the env"
             )
-        # range (NaN included) on the first call, every call with DCSC_CHECK_FINITE=1: a check
-        # reads its result on the host, a sync per frame on a GPU
-        if not getattr(self, "_inputs_checked", False) or check_finite_every_frame():
-            check_in_range(str(machine_key), b_m, 0.0, 1.0)
-            check_in_range(str(human_key), b_h, 0.0, 1.0)
-            self._inputs_checked = True
-        ratio = confidence_ratio(b_m, b_h)
+        if b_m.shape != b_h.shape:
+            raise ValueError(
+                f"{name}'s {machine_key!r} has shape {tuple(b_m.shape)} but {human_key!r} has {tuple(b_h.shape)}: "
+                "one confidence per frame each"
+            )
+        return check_values(str(machine_key), b_m, 0.0, 1.0), check_values(str(human_key), b_h, 0.0, 1.0)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        ratio = confidence_ratio(*self.confidences(tensordict))
         beta = self.machine_share(ratio, tensordict)
+        name = type(self).__name__
+        if beta.shape[-1:] not in ((1,), (self.dims,)):
+            raise ValueError(f"{name} gives beta of shape {tuple(beta.shape)}: its last dim must be 1 or dims={self.dims}")
+        check_values(f"beta ({name})", beta, 0.0, 1.0)
         beta = beta.expand(*ratio.shape[:-1], self.dims)
         ratio_key, beta_key = self.out_keys
         tensordict.set(ratio_key, ratio)
         tensordict.set(beta_key, beta)
         return tensordict
+
+    def arguments(self) -> dict[str, float]:
+        """The numbers besides ``dims`` this form's constructor took (saved with its state)."""
+        return {}
+
+    def set_arguments(self) -> None:
+        """Checks and sets the numbers of :meth:`arguments` (the constructor and a state load call it)."""
+
+    def get_extra_state(self) -> dict[str, Any]:
+        return {"form": type(self).__name__, "dims": self.dims, "arguments": self.arguments()}
+
+    def set_extra_state(self, state: Mapping[str, Any]) -> None:
+        self.set_arguments(**state["arguments"])
+
+    @classmethod
+    def from_state(cls, state: Mapping[str, Any], prefix: str = "") -> Arbiter:
+        """A new arbiter of this form built from a ``state_dict`` (its extra state at ``prefix``), not yet loaded."""
+        extra = state[prefix + _EXTRA_STATE]
+        return cls(dims=extra["dims"], **extra["arguments"])
+
+
+def _refuse_another_form(
+    module: Arbiter, state: Mapping[str, Any], prefix: str, local_metadata: dict, strict: bool, *args: Any
+) -> None:
+    """``load_state_dict``'s pre-hook: refuses, before anything is loaded, the state of another form or dims."""
+    # imported here: the checkpoint module imports the config, needed only when a state is loaded
+    from dcsc_torchrl.checkpoint import CheckpointError
+
+    mine = type(module).__name__
+    extra = state.get(prefix + _EXTRA_STATE)
+    if extra is None:
+        if strict:
+            raise CheckpointError(f"the state holds no arbiter form ({prefix}{_EXTRA_STATE}): it is not a {mine}'s")
+        return
+    if extra["form"] != mine:
+        raise CheckpointError(f"a {extra['form']}'s state cannot be loaded into a {mine} (another arbiter form)")
+    if extra["dims"] != module.dims:
+        raise CheckpointError(f"a {mine}'s state of dims={extra['dims']} cannot be loaded into one of dims={module.dims}")
+
+
+def arbiter_forms() -> dict[str, type[Arbiter]]:
+    """Every :class:`Arbiter` subclass imported, by class name (the form a saved state names)."""
+    forms: dict[str, type[Arbiter]] = {}
+    todo = [Arbiter]
+    while todo:
+        for sub in todo.pop().__subclasses__():
+            forms[sub.__name__] = sub
+            todo.append(sub)
+    return forms
+
+
+def save_arbiter(arbiter: Arbiter, path: str | os.PathLike, *, task: str) -> Path:
+    """Writes ``arbiter``'s ``state_dict`` (form, dims, theta, gain, ...) as a checkpoint of ``task``.
+
+    Atomic and plain data (:func:`~dcsc_torchrl.checkpoint.save_checkpoint`): read it back
+    with :func:`load_arbiter`.
+
+    Raises:
+        ValueError: for a :class:`RuleArbiter` (its rule is code, not state).
+    """
+    from dcsc_torchrl.checkpoint import save_checkpoint
+    if isinstance(arbiter, RuleArbiter):
+        raise ValueError("a RuleArbiter's rule is code, not state: it cannot be saved; rebuild it from its rule")
+    return save_checkpoint(path, task=task, payload={"arbiter": arbiter.state_dict()})
+
+
+def load_arbiter(path: str | os.PathLike, *, task: str, into: Arbiter | None = None) -> Arbiter:
+    """Reads an arbiter written by :func:`save_arbiter` (``weights_only``), refusing another task or form.
+
+    Args:
+        path: the file.
+        task: the task it must have been saved for.
+        into: load the state into this arbiter, which must be of the saved form and dims;
+            by default a new arbiter of the saved form is built (default keys).
+
+    Returns:
+        The loaded arbiter (``into`` where given).
+
+    Raises:
+        CheckpointError: naming both, for a file of another task, or a state of another
+            form or dims than ``into``; or for a file that holds no arbiter.
+    """
+    from dcsc_torchrl.checkpoint import CheckpointError, load_checkpoint
+    data = load_checkpoint(path, task=task)
+    state = data.get("arbiter")
+    if not isinstance(state, Mapping) or not isinstance(state.get(_EXTRA_STATE), Mapping):
+        raise CheckpointError(f"{path} holds no arbiter (save_arbiter writes one)")
+    form = state[_EXTRA_STATE].get("form")
+    forms = arbiter_forms()
+    if into is None and form not in forms:
+        raise CheckpointError(f"{path} holds an arbiter of form {form!r}, which is not an Arbiter class imported here")
+    arbiter = forms[form].from_state(state) if into is None else into
+    try:
+        arbiter.load_state_dict(state)
+    except CheckpointError as error:
+        raise CheckpointError(f"{path}: {error}") from None
+    return arbiter
 
 
 class ConfidenceArbiter(Arbiter):
@@ -129,7 +251,7 @@ class ConfidenceArbiter(Arbiter):
         self.theta = nn.Parameter(torch.full((self.dims,), float(theta_init)))
 
     def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
-        return fusion_weight(self.theta, ratio)
+        return fusion_weight(check_values(f"theta ({type(self).__name__})", self.theta), ratio)
 
 
 class MachineOnlyArbiter(Arbiter):
@@ -168,10 +290,16 @@ class HULAArbiter(Arbiter):
         **kwargs,
     ) -> None:
         super().__init__(dims, **kwargs)
-        check_in_range("threshold", threshold, 0.0, float("inf"), low_inclusive=True, high_inclusive=False)
-        self.threshold = float(threshold)
+        self.set_arguments(threshold)
         self.uncertainty_key = uncertainty_key
         self.in_keys = [*self.in_keys[:2], uncertainty_key]
+
+    def arguments(self) -> dict[str, float]:
+        return {"threshold": self.threshold}
+
+    def set_arguments(self, threshold: float) -> None:
+        check_in_range("threshold", threshold, 0.0, float("inf"), low_inclusive=True, high_inclusive=False)
+        self.threshold = float(threshold)
 
     def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
         uncertainty = tensordict.get(self.uncertainty_key, None)
@@ -180,9 +308,7 @@ class HULAArbiter(Arbiter):
                 f"HULAArbiter reads {self.uncertainty_key!r}, which is missing: run the MCDropoutPolicy "
                 "before the arbiter (SharedPolicyModule does)"
             )
-        if not getattr(self, "_uncertainty_checked", False) or check_finite_every_frame():
-            check_finite(str(self.uncertainty_key), uncertainty)
-            self._uncertainty_checked = True
+        check_values(str(self.uncertainty_key), uncertainty, 0.0)
         return (uncertainty <= self.threshold).to(ratio.dtype)
 
 
@@ -194,7 +320,7 @@ class RuleArbiter(Arbiter):
     the state and no confidence: ``beta = rule(observation)``, 1 (the machine) where the
     rule holds and 0 (the operator) elsewhere. A rule may also return a share in [0, 1].
     It shows whether the two partners are complementary *in state*, which no constant
-    beta and no scalar theta can express (docs/results.md).
+    beta and no scalar theta can express (docs/records/results.md).
 
     Args:
         rule: ``observation [*batch, obs] -> [*batch]``, a bool or a share in [0, 1] per frame.
@@ -225,10 +351,7 @@ class RuleArbiter(Arbiter):
         if share.shape != ratio.shape[:-1]:
             raise ValueError(f"RuleArbiter's rule must return one share per frame, shape {tuple(ratio.shape[:-1])}, "
                              f"got {tuple(share.shape)}")
-        if not getattr(self, "_share_checked", False) or check_finite_every_frame():
-            check_in_range("rule share", share, 0.0, 1.0)
-            self._share_checked = True
-        return share.unsqueeze(-1)
+        return check_values("rule share", share, 0.0, 1.0).unsqueeze(-1)
 
 
 def centred_fusion_weight(theta: torch.Tensor, ratio: torch.Tensor, gain: float) -> torch.Tensor:
@@ -279,12 +402,18 @@ class CentredConfidenceArbiter(Arbiter):
         super().__init__(dims, **kwargs)
         if not math.isfinite(theta_init):
             raise ValueError(f"theta_init must be finite, got {theta_init!r}")
-        check_in_range("gain", gain, 0.0, float("inf"), low_inclusive=False, high_inclusive=False)
-        self.gain = float(gain)
+        self.set_arguments(gain)
         self.theta = nn.Parameter(torch.full((self.dims,), float(theta_init)))
 
+    def arguments(self) -> dict[str, float]:
+        return {"gain": self.gain}
+
+    def set_arguments(self, gain: float) -> None:
+        check_in_range("gain", gain, 0.0, float("inf"), low_inclusive=False, high_inclusive=False)
+        self.gain = float(gain)
+
     def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
-        return centred_fusion_weight(self.theta, ratio, self.gain)
+        return centred_fusion_weight(check_values(f"theta ({type(self).__name__})", self.theta), ratio, self.gain)
 
 
 class ConstantArbiter(Arbiter):
@@ -300,6 +429,12 @@ class ConstantArbiter(Arbiter):
 
     def __init__(self, value: float, dims: int = 1, **kwargs) -> None:
         super().__init__(dims, **kwargs)
+        self.set_arguments(value)
+
+    def arguments(self) -> dict[str, float]:
+        return {"value": self.value}
+
+    def set_arguments(self, value: float) -> None:
         check_in_range("value", value, 0.0, 1.0, low_inclusive=True, high_inclusive=True)
         self.value = float(value)
 
@@ -321,22 +456,38 @@ class FrozenConfidenceArbiter(Arbiter):
     """
 
     def __init__(self, arbiter: Arbiter, machine_confidence: float, human_confidence: float) -> None:
+        if not isinstance(getattr(arbiter, "theta", None), nn.Parameter):
+            raise ValueError(
+                f"FrozenConfidenceArbiter needs a learned arbiter (one with a theta parameter), got "
+                f"{type(arbiter).__name__}"
+            )
         super().__init__(arbiter.dims, in_keys=arbiter.in_keys, out_keys=arbiter.out_keys)
+        self.set_arguments(machine_confidence, human_confidence)
+        self.arbiter = arbiter
+
+    def arguments(self) -> dict[str, float]:
+        return dict(zip(("machine_confidence", "human_confidence"), self.frozen, strict=True))
+
+    def set_arguments(self, machine_confidence: float, human_confidence: float) -> None:
         check_in_range("machine_confidence", machine_confidence, 0.0, 1.0, low_inclusive=True, high_inclusive=True)
         check_in_range("human_confidence", human_confidence, 0.0, 1.0, low_inclusive=True, high_inclusive=True)
-        self.arbiter = arbiter
         self.frozen = (float(machine_confidence), float(human_confidence))
+
+    @classmethod
+    def from_state(cls, state: Mapping[str, Any], prefix: str = "") -> Arbiter:
+        inner_prefix = f"{prefix}arbiter."
+        inner = arbiter_forms()[state[inner_prefix + _EXTRA_STATE]["form"]].from_state(state, inner_prefix)
+        return cls(inner, **state[prefix + _EXTRA_STATE]["arguments"])
 
     @property
     def theta(self) -> nn.Parameter:
         return self.arbiter.theta
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def confidences(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """The frozen ``(b_m, b_h)``, shaped like the frame's ``human_confidence``."""
         like = tensordict.get(self.in_keys[1])
         b_m, b_h = (torch.full_like(like, value) for value in self.frozen)
-        ratio = confidence_ratio(b_m, b_h)
-        beta = self.arbiter.machine_share(ratio, tensordict).expand(*ratio.shape[:-1], self.dims)
-        ratio_key, beta_key = self.out_keys
-        tensordict.set(ratio_key, ratio)
-        tensordict.set(beta_key, beta)
-        return tensordict
+        return b_m, b_h
+
+    def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+        return self.arbiter.machine_share(ratio, tensordict)

@@ -337,6 +337,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as err:  # a bug, not a mistake: still one line, the traceback on request
         if debug:
             raise
+        if isinstance(err.__context__, KeyboardInterrupt):
+            # raised while a Ctrl-C unwound: TorchRL's DDPGLoss swaps its critic's parameters in
+            # with TensorDict's to_module, whose __exit__ turns a KeyboardInterrupt into "RuntimeError:
+            # Converting a tensordict to boolean value" (our losses avoid it: losses.call_with_params)
+            _say("dcsc: interrupted")
+            return 130
         _say(f"dcsc: error: {type(err).__name__}: {_one_line(err)} (run with --debug for the traceback)")
         return 1
     return 0

@@ -6,7 +6,8 @@ input's floating dtype (float32 or float64), never returns NaN for finite inputs
 domain, and validates its scalar parameters with a :class:`ValueError` that names the bad
 parameter and its value. :func:`check_in_range` and :func:`check_finite` are the two
 validation helpers the rest of the library imports, so every module reports bad input the
-same way.
+same way; :func:`check_values` is the check the per-frame modules run on every frame (one
+reduction, and no device sync: see there).
 
 The two confidence integrals have no elementary closed form. Both are integrals of the
 form ``∫_0^∞ e^{-u} h(u / y) du`` (see ``docs/math.md`` for the derivations); they are
@@ -21,17 +22,18 @@ from __future__ import annotations
 
 import functools
 import math
-import os
+from collections import deque
 from numbers import Real
 
 import torch
 from torch import Tensor
 
 __all__ = [
-    "CHECK_FINITE_ENV",
     "check_finite",
-    "check_finite_every_frame",
     "check_in_range",
+    "check_values",
+    "defer_check",
+    "flush_frame_checks",
     "human_confidence",
     "knowledge_update",
     "machine_confidence",
@@ -66,8 +68,6 @@ _STEEP_DELTA = 3.0
 # e^{-delta2 |t|} to a relative 1e-16), covered by two Gauss-Legendre panels of _N_STEEP nodes.
 _T_STEEP = 37.0
 _N_STEEP = 40
-# Set to 1 to check the frames of every call for NaN / inf (see check_finite_every_frame).
-CHECK_FINITE_ENV = "DCSC_CHECK_FINITE"
 
 
 # --------------------------------------------------------------------------------------
@@ -179,18 +179,128 @@ def check_finite(name: str, tensor: Tensor) -> Tensor:
     return tensor
 
 
-def check_finite_every_frame() -> bool:
-    """Whether the per-frame modules check every frame for NaN / inf (``DCSC_CHECK_FINITE=1``).
+def _interval(low: float | None, high: float | None) -> str:
+    return f"[{'-inf' if low is None else low}, {'inf' if high is None else high}]"
 
-    :func:`check_finite` reads its result on the host (``bool(...)``): on a GPU that is one
-    synchronisation per call. The modules that run on every frame (the MC-dropout machine,
-    the arbiters) therefore check their inputs on their first call only, where a wrong
-    observation width, NaN weights or a missing transform show up, and check every frame
-    only when this returns True: set the environment variable ``DCSC_CHECK_FINITE=1`` to
-    find the frame where a NaN enters. The operator's transform checks its frames always:
-    they come from the env on the host, where a check costs no synchronisation.
+
+def check_values(name: str, tensor: Tensor, low: float | None = None, high: float | None = None) -> Tensor:
+    """The every-frame check: ``tensor`` finite and, where given, in ``[low, high]``.
+
+    It costs one reduction, ``torch.aminmax`` (NaN and +/-inf reach its ends), whatever
+    the tensor's size. Where it is read decides when a bad frame is refused:
+
+    - on the host (CPU), the two ends are read at once (no device to wait for): a bad
+      frame raises here, with :func:`check_in_range` / :func:`check_finite`'s message
+      (the first bad index and value);
+    - on a device (CUDA), the verdict ``low <= min and max <= high`` is computed there and
+      handed to :func:`defer_check`, which copies it to pinned host memory without
+      blocking and reads it on a later call, once the copy has landed: no per-frame host
+      sync, and the :class:`ValueError` (naming ``name``) comes a few frames late, or at
+      :func:`flush_frame_checks`. (``torch._assert_async`` would not sync either, but a
+      failed device assert carries no message and leaves the CUDA context unusable.)
+
+    Integer tensors are checked against the range only; bool and empty tensors pass.
+
+    Args:
+        name: what the tensor is (a TensorDict key such as ``"observation"``).
+        tensor: the values to check.
+        low: lower bound (inclusive), or ``None``.
+        high: upper bound (inclusive), or ``None``.
+
+    Returns:
+        ``tensor`` unchanged.
+
+    Raises:
+        ValueError: naming ``name``, for a NaN, an inf or a value out of range.
+
+    Examples:
+        >>> check_values("human_confidence", torch.tensor([[0.2], [1.0]]), 0.0, 1.0).shape
+        torch.Size([2, 1])
+        >>> check_values("human_rt", torch.tensor([0.3, float("inf")]), 0.0)
+        Traceback (most recent call last):
+        ...
+        ValueError: human_rt has 1 non-finite value(s) of 2: inf at index (1,)
     """
-    return os.environ.get(CHECK_FINITE_ENV, "") not in ("", "0")
+    bounded = low is not None or high is not None
+    if (not tensor.is_floating_point() and (tensor.dtype == torch.bool or not bounded)) or not tensor.numel():
+        return tensor
+    values = tensor.detach()
+    lo, hi = torch.aminmax(values)
+    if values.is_cpu:
+        lo_value, hi_value = lo.item(), hi.item()  # NaN fails every comparison below
+        if not (-math.inf < lo_value and hi_value < math.inf and (low is None or lo_value >= low)
+                and (high is None or hi_value <= high)):
+            if bounded:
+                check_in_range(name, values, low, high)
+            check_finite(name, values)
+        return tensor
+    largest = torch.finfo(values.dtype).max if values.is_floating_point() else math.inf
+    floor = -largest if low is None else max(low, -largest)
+    ceiling = largest if high is None else min(high, largest)
+    requirement = f"in {_interval(low, high)}" if bounded else "finite"
+    defer_check(f"{name} must be {requirement}: a frame on {values.device} was not (read back without a sync, "
+                "a few frames after it)", (lo >= floor) & (hi <= ceiling))
+    return tensor
+
+
+class _DeferredChecks:
+    """Verdicts of device checks on their way to the host: (message, pinned verdict, event), oldest first."""
+
+    def __init__(self) -> None:
+        self.pending: deque[tuple[str, Tensor, torch.Event]] = deque()
+
+    def add(self, message: str, ok: Tensor) -> None:
+        self.read(wait=False)
+        verdict = torch.empty((), dtype=torch.bool, pin_memory=True)
+        verdict.copy_(ok, non_blocking=True)
+        event = torch.Event(ok.device)
+        event.record()
+        self.pending.append((message, verdict, event))
+
+    def read(self, *, wait: bool) -> None:
+        while self.pending:
+            message, verdict, event = self.pending[0]
+            if wait:
+                event.synchronize()
+            elif not event.query():  # not landed yet: no waiting
+                return
+            self.pending.popleft()
+            if not bool(verdict):
+                self.pending.clear()
+                raise ValueError(message)
+
+
+_DEFERRED = _DeferredChecks()
+
+
+def defer_check(message: str, ok: Tensor) -> None:
+    """Refuses a device frame later, without a sync: ``ValueError(message)`` once ``ok`` reads False.
+
+    ``ok`` (a 0-dim bool tensor on a device, computed there) is copied to pinned host
+    memory with ``non_blocking=True`` and an event is recorded behind the copy. Every call
+    (and :func:`flush_frame_checks`) first reads the verdicts whose event has completed
+    (``Event.query()``, which never waits), oldest first, and raises for the first False.
+
+    Args:
+        message: the one-line message of the :class:`ValueError`, naming the key.
+        ok: True where the frame passed.
+
+    Raises:
+        ValueError: for an earlier verdict that has landed False.
+    """
+    _DEFERRED.add(message, ok)
+
+
+def flush_frame_checks() -> None:
+    """Waits for every pending device verdict of :func:`defer_check` and raises for the first False.
+
+    One sync: call it once per batch (the losses do, before learning from a batch) or at
+    the end of a run, so that a bad frame on a device is not left unread. A no-op on the host.
+
+    Raises:
+        ValueError: the message of the first failed check.
+    """
+    _DEFERRED.read(wait=True)
 
 
 def _check_mode(mode: str) -> None:
@@ -591,7 +701,7 @@ def machine_confidence(c: TensorLike, lam: float, delta2: float, *, validate: bo
         delta2: exponent of the marginal cost, ``> 1`` and finite.
         validate: check that ``c`` is ``>= 0`` and finite (reads the result on the host: a
             device sync). The MC-dropout machine passes False on its frames: its ``c`` is a
-            sum of squares, checked finite on its first call (:func:`check_finite_every_frame`).
+            sum of squares of samples it checks finite on every frame (:func:`check_values`).
 
     Returns:
         ``b_m`` in ``[0, 1]``, same shape and floating dtype as ``c``; differentiable w.r.t.

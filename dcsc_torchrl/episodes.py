@@ -20,6 +20,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
+from dcsc_torchrl.confidence import flush_frame_checks
 from dcsc_torchrl.tasks import Task
 
 FRAME_KEYS = ("observation", "action", "machine_probs", "machine_action", "machine_uncertainty",
@@ -149,6 +150,7 @@ def run_scenarios(
         if not running.any():
             break
     collector.shutdown()
+    flush_frame_checks()  # on a device, the frames' deferred checks (a no-op on the host)
     return EpisodeBatch(rows, trace_rows(torch.cat(traced), task) if traced else [], torch.cat(frames))
 
 

@@ -1,4 +1,10 @@
-"""Losses of Algorithm 1: the Q critic's TD loss and the theta update of Eq. 19 (discrete)."""
+"""Losses of Algorithm 1: the Q critic's TD loss and the theta update of Eq. 19 (discrete).
+
+Each loss's forward first reads the verdicts of the frame checks still pending on a device
+(:func:`~dcsc_torchrl.confidence.flush_frame_checks`, one sync per batch): a batch holding
+a bad frame is refused before anything learns from it. The critics run with their
+parameters through :func:`call_with_params`, which survives a Ctrl-C.
+"""
 
 from __future__ import annotations
 
@@ -8,11 +14,32 @@ import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule, dispatch
 from tensordict.utils import NestedKey
+from torch.func import functional_call
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import distance_loss
 
-from dcsc_torchrl.confidence import check_in_range
-from dcsc_torchrl.policy import SharedPolicyModule
+from dcsc_torchrl.confidence import check_in_range, check_values, flush_frame_checks
+from dcsc_torchrl.policy import SharedPolicyModule, check_distribution
+
+
+def call_with_params(module: TensorDictModule, params: TensorDictBase, tensordict: TensorDictBase) -> TensorDictBase:
+    """``module(tensordict)`` run with ``params`` (a TensorDict of its parameters and buffers) in place of its own.
+
+    :func:`torch.func.functional_call` swaps them in and back in a ``try``/``finally``, so
+    the module gets its own back whatever ends the call. TensorDict's
+    ``with params.to_module(module):`` does not: its ``__exit__`` returns without putting
+    them back on an ``Exception``, and on a ``KeyboardInterrupt`` (not an ``Exception``) it
+    returns a TensorDict, whose truth value Python then asks for to decide whether to
+    swallow the interrupt: ``RuntimeError: Converting a tensordict to boolean value is not
+    permitted`` replaced the Ctrl-C.
+
+    Examples:
+        >>> net = TensorDictModule(torch.nn.Linear(2, 1), ["x"], ["y"])
+        >>> zeros = TensorDict.from_module(net).apply(torch.zeros_like)
+        >>> call_with_params(net, zeros, TensorDict({"x": torch.ones(2)}))["y"]
+        tensor([0.])
+    """
+    return functional_call(module, dict(params.flatten_keys(".").items()), (tensordict,))
 
 
 class QCriticLoss(LossModule):
@@ -104,26 +131,38 @@ class QCriticLoss(LossModule):
     def action_values(self, tensordict: TensorDictBase, params: TensorDictBase) -> torch.Tensor:
         """The critic's ``Q(s, .)`` on ``tensordict`` with the given parameters."""
         td = tensordict.select(*self.qvalue_network.in_keys, strict=True).copy()
-        with params.to_module(self.qvalue_network):
-            self.qvalue_network(td)
-        return td.get(self.tensor_keys.action_value)
+        return call_with_params(self.qvalue_network, params, td).get(self.tensor_keys.action_value)
 
     def loss_qvalue(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """Algorithm 1 lines 9-12 as a loss: ``distance(Q(s, a), r + gamma max_a Q'(s', a))``."""
+        """Algorithm 1 lines 9-12 as a loss: ``distance(Q(s, a), r + gamma max_a Q'(s', a))``.
+
+        Raises:
+            ValueError: naming the key, for an action that is not one-hot per frame (of the
+                critic's width: an action index would broadcast silently) or a NaN / inf reward.
+        """
         keys = self.tensor_keys
-        action = tensordict.get(keys.action).to(torch.get_default_dtype())
-        pred = (self.action_values(tensordict, self.qvalue_network_params) * action).sum(-1, keepdim=True)
+        action = tensordict.get(keys.action)
+        values = self.action_values(tensordict, self.qvalue_network_params)
+        if action.shape != values.shape:
+            raise ValueError(
+                f"the batch's {keys.action!r} has shape {tuple(action.shape)} but the critic gives "
+                f"{tuple(values.shape)} action values: store the one-hot action"
+            )
+        action = check_distribution(str(keys.action), action).to(torch.get_default_dtype())
+        pred = (values * action).sum(-1, keepdim=True)
         next_td = tensordict.get("next")
         target_params = self.target_qvalue_network_params if self.delay_qvalue else self.qvalue_network_params
         with torch.no_grad():
             next_value = self.action_values(next_td, target_params).max(-1, keepdim=True).values
             not_terminal = (~next_td.get(keys.terminated)).to(next_value.dtype)
-            target = next_td.get(keys.reward) + self.gamma * not_terminal * next_value
+            reward = check_values(str(("next", keys.reward)), next_td.get(keys.reward))
+            target = reward + self.gamma * not_terminal * next_value
         loss = distance_loss(pred, target, loss_function=self.loss_function).mean()
         return loss, {"pred_value": pred.detach().mean(), "target_value": target.mean()}
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        flush_frame_checks()
         loss, metadata = self.loss_qvalue(tensordict)
         return TensorDict({"loss_qvalue": loss, **metadata}, batch_size=[])
 
@@ -162,7 +201,14 @@ class ThetaLoss(QCriticLoss):
         return sorted({*super().in_keys, *self.arbiter.in_keys, *self.blend.in_keys} - set(self.arbiter.out_keys), key=str)
 
     def loss_theta(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """``-sum_a pi_theta(a|s) Q(s, a)`` with Q detached (gradient = -Eq. 19)."""
+        """``-sum_a pi_theta(a|s) Q(s, a)`` with Q detached (gradient = -Eq. 19).
+
+        Raises:
+            ValueError: naming the key, for stored machine probabilities that are not a
+                distribution per frame (the blend checks the operator's action).
+        """
+        machine_key = self.blend.in_keys[1]
+        check_distribution(str(machine_key), tensordict.get(machine_key))
         td = tensordict.select(*self.arbiter.in_keys, *self.blend.in_keys, strict=False).copy()
         self.blend(self.arbiter(td))
         probs = td.get(self.blend.out_keys[0])
@@ -173,6 +219,7 @@ class ThetaLoss(QCriticLoss):
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        flush_frame_checks()
         loss_q, metadata = self.loss_qvalue(tensordict)
         loss_theta, metadata_theta = self.loss_theta(tensordict)
         return TensorDict({"loss_theta": loss_theta, "loss_qvalue": loss_q, **metadata, **metadata_theta}, batch_size=[])
@@ -234,8 +281,7 @@ class AuthorityThetaLoss(LossModule):
         td = tensordict.select(obs_key, *([] if beta is not None else [beta_key]), strict=True).copy()
         if beta is not None:
             td.set(beta_key, beta)
-        with self.authority_network_params.to_module(self.authority_network):
-            self.authority_network(td)
+        call_with_params(self.authority_network, self.authority_network_params, td)
         return td.get(self.authority_network.out_keys[0]).reshape(-1)
 
     def loss_theta(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -245,12 +291,12 @@ class AuthorityThetaLoss(LossModule):
         obs_key = self.authority_network.in_keys[0]
         frame = tensordict.select(obs_key).copy()
         frame.set(self.authority_network.in_keys[1], beta)
-        with self.authority_network_params.detach().to_module(self.authority_network):
-            self.authority_network(frame)
+        call_with_params(self.authority_network, self.authority_network_params.detach(), frame)
         loss = -frame.get(self.authority_network.out_keys[0]).mean()
         return loss, {"beta": beta.detach().mean()}
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        flush_frame_checks()
         loss, metadata = self.loss_theta(tensordict)
         return TensorDict({"loss_theta": loss, **metadata}, batch_size=[])

@@ -10,14 +10,16 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
+from torch.nn.parameter import is_lazy
 
 from dcsc_torchrl.confidence import (
     check_finite,
-    check_finite_every_frame,
     check_in_range,
+    check_values,
     machine_confidence,
     mc_dropout_uncertainty,
 )
+from dcsc_torchrl.networks import FirstDims
 
 _DROPOUT_TYPES = (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d, nn.AlphaDropout)
 
@@ -35,16 +37,21 @@ def dropout_layers(network: nn.Module) -> list[nn.Module]:
 def linear_widths(network: nn.Module) -> tuple[int | None, int | None]:
     """``(input width, output width)`` of ``network`` where its layers say them, else None.
 
-    The input width is the first ``nn.Linear``'s ``in_features`` when the network (or its
-    first ``nn.Sequential`` child, recursively) starts with that layer; a network that
-    starts with anything else (e.g. a layer keeping the first n values) has no known input
-    width. The output width is the last ``nn.Linear``'s ``out_features`` (an MLP, maybe
-    followed by an activation).
+    The input width is known when the network (or its first ``nn.Sequential`` child,
+    recursively) starts with an ``nn.Linear`` (its ``in_features``; not a lazy one, whose
+    width is set by its first input) or a :class:`~dcsc_torchrl.networks.FirstDims` (its
+    ``in_dims``); a network that starts with anything else has no known input width. The
+    output width is the last ``nn.Linear``'s ``out_features`` (an MLP, maybe followed by an
+    activation).
     """
     first: nn.Module = network
     while isinstance(first, nn.Sequential) and len(first) > 0:
         first = first[0]
-    in_width = first.in_features if isinstance(first, nn.Linear) else None
+    in_width = None
+    if isinstance(first, nn.Linear) and not is_lazy(first.weight):
+        in_width = first.in_features
+    elif isinstance(first, FirstDims):
+        in_width = first.in_dims
     linears = [m for m in network.modules() if isinstance(m, nn.Linear)]
     return in_width, (linears[-1].out_features if linears else None)
 
@@ -82,12 +89,18 @@ class MCDropoutPolicy(TensorDictModuleBase):
     pass runs without autograd. Outside the M-sample pass the wrapped network stays in
     eval mode, whatever ``.train()`` is called on this module.
 
+    Every frame is checked where it enters, at one reduction per tensor and no device sync
+    (:func:`~dcsc_torchrl.confidence.check_values`): the observation's width (a shape
+    comparison) and dtype (the network's), its values finite, and the network's M samples
+    finite (NaN weights show there).
+
     Args:
-        network: the machine actor; must contain at least one dropout layer. For
+        network: the machine actor; must contain at least one dropout layer with
+            ``p > 0`` (otherwise the uncertainty would be 0 on every frame). For
             ``output="probs"`` it maps observations to logits ``[*batch, n]``; for
             ``output="action"`` to actions ``[*batch, d]``.
         output: ``"probs"`` (discrete actions) or ``"action"`` (continuous actions).
-        num_samples: M, the number of dropout samples (>= 1).
+        num_samples: M, the number of dropout samples (>= 2: one sample has no variance).
         lam: lambda of Eq. 11, in (0, 1).
         delta2: delta_2 of Eq. 12, > 1.
         tau_inv: the observation noise tau^-1 of Eq. 10, >= 0.
@@ -100,8 +113,8 @@ class MCDropoutPolicy(TensorDictModuleBase):
             threshold is). ``machine_uncertainty`` is written raw either way.
         observation_size: the width of the observation (last dim of ``in_keys[0]``) the
             network was built for; default: the first ``nn.Linear``'s input width, where
-            the network starts with one (see :func:`linear_widths`). A network that keeps
-            only the first n values would silently cut a wider observation: pass it.
+            the network starts with one, or the ``in_dims`` of a leading
+            :class:`~dcsc_torchrl.networks.FirstDims` (see :func:`linear_widths`).
         in_keys: the observation key(s) fed to ``network``.
         out_keys: where to write mean, uncertainty and confidence; defaults to
             ``["machine_probs" | "machine_action", "machine_uncertainty",
@@ -135,17 +148,26 @@ class MCDropoutPolicy(TensorDictModuleBase):
         super().__init__()
         if output not in _OUT_KEYS:
             raise ValueError(f"output must be 'probs' or 'action', got {output!r}")
-        if int(num_samples) != num_samples or num_samples < 1:
-            raise ValueError(f"num_samples must be an integer >= 1, got {num_samples!r}")
+        if int(num_samples) != num_samples or num_samples < 2:
+            raise ValueError(
+                f"num_samples must be an integer >= 2 (Eq. 10's variance of one dropout sample is 0 on every "
+                f"frame), got {num_samples!r}"
+            )
         check_in_range("lam", lam, 0.0, 1.0, low_inclusive=False, high_inclusive=False)
         check_in_range("delta2", delta2, 1.0, float("inf"), low_inclusive=False, high_inclusive=False)
         check_in_range("tau_inv", tau_inv, 0.0, float("inf"), low_inclusive=True, high_inclusive=False)
         check_in_range("uncertainty_scale", uncertainty_scale, 0.0, float("inf"), low_inclusive=False,
                        high_inclusive=False)
-        if not dropout_layers(network):
+        layers = dropout_layers(network)
+        if not layers:
             raise ValueError(
                 "network has no dropout layer: its MC-dropout uncertainty would always be 0; "
                 "add nn.Dropout to the machine actor"
+            )
+        if all(layer.p == 0 for layer in layers):
+            raise ValueError(
+                f"network's dropout layers all have p=0 ({len(layers)} of them): its MC-dropout uncertainty "
+                "would always be 0; build the machine actor with dropout > 0"
             )
         self.network = network.eval()
         self.output = output
@@ -167,13 +189,14 @@ class MCDropoutPolicy(TensorDictModuleBase):
             )
         self.observation_size = observation_size if observation_size is not None else in_width
         """Observation width the network was built for (None: not known)."""
-        self._inputs_checked = False
 
     def check_inputs(self, inputs: Sequence[torch.Tensor]) -> None:
-        """The checks of the first call (and of every call with ``DCSC_CHECK_FINITE=1``).
+        """The checks of every frame: the observation's width and dtype (free), its values finite.
 
         Raises:
-            ValueError: for an observation of the wrong width or with NaN / inf values.
+            ValueError: for an observation of the wrong width or dtype, or with NaN / inf
+                values (on a device: a few frames later, see
+                :func:`~dcsc_torchrl.confidence.check_values`).
         """
         key = self.in_keys[0]
         width = inputs[0].shape[-1] if inputs[0].dim() else 1
@@ -182,8 +205,14 @@ class MCDropoutPolicy(TensorDictModuleBase):
                 f"{key!r} has {width} values per frame but the machine network was built for "
                 f"{self.observation_size} (observation_size): the env and the checkpoint disagree"
             )
+        weight = next(self.network.parameters(), None)
         for name, value in zip(self.in_keys, inputs, strict=True):
-            check_finite(str(name), value)
+            if weight is not None and value.dtype != weight.dtype:
+                raise ValueError(
+                    f"{name!r} is {value.dtype} but the machine network's parameters are {weight.dtype}: "
+                    "convert one of them (e.g. torchrl's DoubleToFloat transform on the env)"
+                )
+            check_values(str(name), value)
 
     def train(self, mode: bool = True) -> MCDropoutPolicy:
         super().train(mode)
@@ -205,17 +234,10 @@ class MCDropoutPolicy(TensorDictModuleBase):
             if value is None:
                 raise KeyError(f"the machine reads {key!r}, which is missing from the TensorDict")
             inputs.append(value)
-        # checked on the first call only (a host sync per frame otherwise), see check_finite_every_frame
-        check = not self._inputs_checked or check_finite_every_frame()
-        if check:
-            self.check_inputs(inputs)
-        samples = self.sample(*inputs)
-        if check:
-            check_finite(
-                f"the machine network's output ({self.output}, observation finite: look at its weights)",
-                samples,
-            )
-            self._inputs_checked = True
+        self.check_inputs(inputs)
+        samples = check_values(
+            f"the machine network's output ({self.output}, observation finite: look at its weights)", self.sample(*inputs)
+        )
         mean, uncertainty = mc_dropout_uncertainty(samples, tau_inv=self.tau_inv)
         confidence = machine_confidence(uncertainty / self.uncertainty_scale, self.lam, self.delta2, validate=False)
         mean_key, uncertainty_key, confidence_key = self.out_keys

@@ -12,22 +12,52 @@ if TYPE_CHECKING:
     from dcsc_torchrl.tasks import Task
 
 
+LUNAR_OBS_DIMS = 9
+"""TargetLunarLander's observation: the 8 standard LunarLander values and the pad's x."""
+
+
 class FirstDims(nn.Module):
-    """Keeps the first ``n`` entries of the last dim (the machine's view of the state).
+    """Keeps the first ``n`` of the ``in_dims`` entries of the last dim (the machine's view of the state).
 
     On TargetLunarLander the machine sees the 8 standard values, not the pad's x
-    (docs/architecture.md: the operator knows the target, the machine does not).
+    (docs/architecture.md: the operator knows the target, the machine does not). With
+    ``in_dims`` the input's width is checked on every call (a shape comparison, free): an
+    observation of another width is refused, never cut to its first ``n`` values.
+
+    Args:
+        n: how many leading values are kept (>= 1, at most ``in_dims``).
+        in_dims: the width of the input it was built for; ``None``: any width >= ``n``
+            (the first ``n`` values are kept, unchecked).
+
+    Examples:
+        >>> FirstDims(2, in_dims=3)(torch.tensor([1.0, 2.0, 3.0]))
+        tensor([1., 2.])
+        >>> FirstDims(8, in_dims=9)(torch.zeros(20))
+        Traceback (most recent call last):
+        ...
+        ValueError: the network's input has 20 values per frame but it was built for 9 (FirstDims(8, in_dims=9))
     """
 
-    def __init__(self, n: int) -> None:
+    def __init__(self, n: int, *, in_dims: int | None = None) -> None:
         super().__init__()
-        self.n = n
+        if in_dims is not None and (int(in_dims) != in_dims or in_dims < 1):
+            raise ValueError(f"in_dims must be an integer >= 1, got {in_dims!r}")
+        if int(n) != n or n < 1 or (in_dims is not None and n > in_dims):
+            raise ValueError(f"n must be an integer in [1, in_dims={in_dims}], got {n!r}")
+        self.n = int(n)
+        self.in_dims = None if in_dims is None else int(in_dims)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.in_dims is not None and x.shape[-1:] != (self.in_dims,):
+            width = x.shape[-1] if x.dim() else "no"
+            raise ValueError(
+                f"the network's input has {width} values per frame but it was built for {self.in_dims} "
+                f"(FirstDims({self.n}, in_dims={self.in_dims}))"
+            )
         return x[..., : self.n]
 
     def extra_repr(self) -> str:
-        return f"n={self.n}"
+        return f"n={self.n}, in_dims={self.in_dims}"
 
 
 class ScaledTanh(nn.Module):
@@ -96,23 +126,33 @@ def orthogonal_init_(net: nn.Module, *, out_gain: float, hidden_gain: float = 2.
     return net
 
 
-def lunar_actor(hidden: Sequence[int], dropout: float, *, obs_dims: int = 8, n_actions: int = 4) -> nn.Sequential:
-    """TargetLunarLander actor: the first ``obs_dims`` values -> action logits."""
-    return nn.Sequential(FirstDims(obs_dims), mlp(obs_dims, n_actions, hidden, dropout=dropout))
+def lunar_actor(hidden: Sequence[int], dropout: float, *, obs_dims: int = 8, n_actions: int = 4,
+                in_dims: int | None = LUNAR_OBS_DIMS) -> nn.Sequential:
+    """TargetLunarLander actor: the first ``obs_dims`` of the ``in_dims`` observation values -> action logits.
+
+    ``in_dims`` is the observation's width (TargetLunarLander's 9); another width is
+    refused by the leading :class:`FirstDims` (and by :class:`~dcsc_torchrl.machine.MCDropoutPolicy`,
+    which reads it as its ``observation_size``). For another env pass its width (CartPole: 4).
+    """
+    return nn.Sequential(FirstDims(obs_dims, in_dims=in_dims), mlp(obs_dims, n_actions, hidden, dropout=dropout))
 
 
-def lunar_critic(hidden: Sequence[int], out_dims: int, *, obs_dims: int = 8) -> nn.Sequential:
+def lunar_critic(hidden: Sequence[int], out_dims: int, *, obs_dims: int = 8,
+                 in_dims: int | None = None) -> nn.Sequential:
     """TargetLunarLander critic: V(s) (``out_dims=1``) or Q(s, .) (``out_dims=4``) on the first ``obs_dims`` values.
+
+    With ``in_dims`` (TargetLunarLander's :data:`LUNAR_OBS_DIMS`) the observation's width
+    is checked as the actor's is (:func:`lunar_actor`); by default any width ``>= obs_dims``.
 
     A2C's V critic sees what the actor sees (8 values); the Q critic behind theta's update
     (Algorithm 1's ``Q(s, a; omega)``) sees the whole 9-value state, pad included
     (:data:`LUNAR_QVALUE_DIMS`): otherwise Eq. 19 could never credit the operator for
     steering towards a pad the critic cannot see.
     """
-    return nn.Sequential(FirstDims(obs_dims), mlp(obs_dims, out_dims, hidden))
+    return nn.Sequential(FirstDims(obs_dims, in_dims=in_dims), mlp(obs_dims, out_dims, hidden))
 
 
-LUNAR_QVALUE_DIMS = 9
+LUNAR_QVALUE_DIMS = LUNAR_OBS_DIMS
 """The TargetLunarLander Q critic's input: the 8 standard values and the pad's x."""
 
 

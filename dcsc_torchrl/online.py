@@ -24,7 +24,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.modules import ValueOperator
 from torchrl.objectives import DDPGLoss, LossModule, SoftUpdate, ValueEstimators
 
-from dcsc_torchrl.losses import AuthorityThetaLoss, ThetaLoss
+from dcsc_torchrl.losses import AuthorityThetaLoss, ThetaLoss, call_with_params
 from dcsc_torchrl.policy import SharedPolicyModule
 
 THETA_OPTIMIZERS = {"sgd": torch.optim.SGD, "adam": torch.optim.Adam}
@@ -220,8 +220,8 @@ class ContinuousOnlineLearner(OnlineLearner):
         return self.loss.loss_actor(batch)[0]
 
     def taken_value(self, frames: TensorDictBase) -> torch.Tensor:
-        with self.critic_params.to_module(self.loss.value_network):
-            return self.loss.value_network(frames.select("observation", "action").copy())["state_action_value"].reshape(-1)
+        observed = frames.select("observation", "action").copy()
+        return call_with_params(self.loss.value_network, self.critic_params, observed)["state_action_value"].reshape(-1)
 
     def action_gap(self, frames: TensorDictBase) -> torch.Tensor:
         frames = frames.reshape(-1)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections import OrderedDict
 
 import torch
@@ -16,6 +17,7 @@ from torchrl.data import Bounded, Composite, OneHot, TensorSpec
 from torchrl.modules import OneHotCategorical
 
 from dcsc_torchrl.arbiters import Arbiter
+from dcsc_torchrl.confidence import check_values
 from dcsc_torchrl.machine import MCDropoutPolicy
 
 
@@ -23,27 +25,88 @@ class PolicyBlend(nn.Module):
     """Eq. 14: ``beta * machine + (1 - beta) * human``, optionally clipped to a box.
 
     Discrete: ``machine`` and ``human`` are distributions over actions (the operator's
-    one-hot key is a point mass), the result is the mixture's probabilities.
+    one-hot key is a point mass), the result is the mixture's probabilities. ``human`` is
+    checked on every frame to be one (:func:`check_distribution`): a ``human_action`` of
+    ``[1, 1, 0, 0]`` would make probabilities summing to more than 1. ``machine`` is the
+    MC-dropout machine's mean softmax, a distribution by construction from samples it
+    checks finite (:class:`~dcsc_torchrl.machine.MCDropoutPolicy`); a stored one entering
+    a loss is checked there (:class:`~dcsc_torchrl.losses.ThetaLoss`).
     Continuous: they are actions and the result is the blended action, clipped to
-    ``[low, high]`` when given.
+    ``[low, high]`` when given (Eq. 14 on a bounded action: an operator's action outside
+    the box is clipped with the blend, as the env would; a NaN is refused, never clipped).
+    The checks are one reduction per tensor and no device sync
+    (:func:`~dcsc_torchrl.confidence.check_values`); the shapes are compared for free.
+
+    Args:
+        low: the box's lower corner (continuous), or ``None``.
+        high: the box's upper corner (continuous), or ``None``.
+        discrete: whether ``machine`` and ``human`` are distributions.
+        names: what ``machine`` and ``human`` are called in messages (their TensorDict keys).
     """
 
-    def __init__(self, low: torch.Tensor | None = None, high: torch.Tensor | None = None) -> None:
+    def __init__(
+        self,
+        low: torch.Tensor | None = None,
+        high: torch.Tensor | None = None,
+        *,
+        discrete: bool = False,
+        names: tuple[str, str] = ("machine_probs", "human_action"),
+    ) -> None:
         super().__init__()
         self.register_buffer("low", None if low is None else torch.as_tensor(low))
         self.register_buffer("high", None if high is None else torch.as_tensor(high))
+        self.discrete = discrete
+        self.names = names
 
     def forward(self, beta: torch.Tensor, machine: torch.Tensor, human: torch.Tensor) -> torch.Tensor:
+        machine_name, human_name = self.names
         if machine.shape[-1:] != human.shape[-1:]:  # a shape check: no host sync
             raise ValueError(
                 f"the machine gives {machine.shape[-1]} action values per frame but the operator's "
-                f"human_action has {human.shape[-1]}: the action spec and the machine network disagree"
+                f"{human_name} has {human.shape[-1]}: the action spec and the machine network disagree"
             )
+        if machine.shape != human.shape:
+            raise ValueError(
+                f"the operator's {human_name} has shape {tuple(human.shape)} but {machine_name} has "
+                f"{tuple(machine.shape)}: one action per frame each"
+            )
+        if self.discrete:
+            check_distribution(human_name, human)
+        else:
+            check_values(human_name, human)
         human = human.to(machine.dtype)
         blended = beta * machine + (1 - beta) * human
         if self.low is not None:
             blended = torch.maximum(torch.minimum(blended, self.high), self.low)
         return blended
+
+
+def check_distribution(name: str, values: torch.Tensor) -> torch.Tensor:
+    """Checks that every frame of ``values`` ``[*batch, n]`` is a distribution: in [0, 1], summing to 1.
+
+    Two reductions, no device sync (:func:`~dcsc_torchrl.confidence.check_values`); a float
+    sum may miss 1 by the square root of the dtype's epsilon (3.5e-4 in float32: a mean of
+    softmaxes' rounding, far below any mass gained or lost).
+
+    Raises:
+        ValueError: naming ``name``, for a NaN, an entry out of [0, 1] or a sum other than 1.
+
+    Examples:
+        >>> check_distribution("human_action", torch.tensor([[1, 1, 0, 0]]))
+        Traceback (most recent call last):
+        ...
+        ValueError: human_action's sum per frame (one-hot or probabilities) must be in [1.0, 1.0], got 2
+    """
+    check_values(name, values, 0.0, 1.0)
+    slack = _sum_slack(values.dtype)
+    check_values(f"{name}'s sum per frame (one-hot or probabilities)", values.sum(-1), 1.0 - slack, 1.0 + slack)
+    return values
+
+
+@functools.cache
+def _sum_slack(dtype: torch.dtype) -> float:
+    """How far a distribution's sum may miss 1: the square root of ``dtype``'s epsilon, 2 digits (0 for integers)."""
+    return float(f"{torch.finfo(dtype).eps ** 0.5:.1e}") if dtype.is_floating_point else 0.0
 
 
 def plays_operator_alone(beta: float, *, discrete: bool, mode: bool) -> bool:
@@ -148,9 +211,8 @@ class SharedPolicyModule(TensorDictSequential):
         if isinstance(action_spec, OneHot):
             if machine.output != "probs":
                 raise ValueError("a OneHot action spec needs a machine with output='probs'")
-            parts["blend"] = TensorDictModule(
-                PolicyBlend(), in_keys=[beta_key, mean_key, human_action_key], out_keys=["probs"]
-            )
+            blend = PolicyBlend(discrete=True, names=(str(mean_key), str(human_action_key)))
+            parts["blend"] = TensorDictModule(blend, in_keys=[beta_key, mean_key, human_action_key], out_keys=["probs"])
             parts["sample"] = ProbabilisticTensorDictModule(
                 in_keys=["probs"],
                 out_keys=[action_key],
@@ -164,7 +226,7 @@ class SharedPolicyModule(TensorDictSequential):
                 raise ValueError(
                     f"arbiter.dims={arbiter.dims} must be 1 or the action size {action_spec.shape[-1]}"
                 )
-            box = PolicyBlend(action_spec.space.low, action_spec.space.high)
+            box = PolicyBlend(action_spec.space.low, action_spec.space.high, names=(str(mean_key), str(human_action_key)))
             parts["blend"] = TensorDictModule(
                 box, in_keys=[beta_key, mean_key, human_action_key], out_keys=[action_key]
             )

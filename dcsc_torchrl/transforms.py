@@ -22,9 +22,9 @@ from torchrl.data import Bounded, Categorical, Composite, OneHot, Unbounded
 from torchrl.envs.transforms import Transform
 
 from dcsc_torchrl.confidence import (
-    check_finite,
-    check_finite_every_frame,
     check_in_range,
+    check_values,
+    defer_check,
     human_confidence,
     knowledge_update,
 )
@@ -65,20 +65,27 @@ def _reset_mask(transform: Transform, tensordict: TensorDictBase, batch_shape: t
     return reset.reshape(*batch_shape, 1)
 
 
-def _checked_here(tensor: torch.Tensor) -> bool:
-    """Whether a per-frame check of ``tensor`` is cheap: on the host, or asked for."""
-    return tensor.device.type == "cpu" or check_finite_every_frame()
+def _check_one_hot(name: str, action: torch.Tensor) -> None:
+    """Refuses a frame of ``action`` ``[*batch, n]`` that is not one-hot (one 1, the rest 0); no device sync."""
+    rows = ((action == 0) | (action == 1)).all(-1) & (action.sum(-1) == 1)
+    requirement = "must be one-hot for a OneHot action spec (one 1, the rest 0)"
+    if action.device.type != "cpu":
+        defer_check(f"{name} {requirement}: a frame on {action.device} was not (read back without a sync)", rows.all())
+    elif not bool(rows.all()):
+        index = tuple(int(i) for i in (~rows).nonzero()[0])
+        raise ValueError(f"{name} {requirement}, got {action[index].tolist()} at batch index {index}")
 
 
 class HumanOperatorTransform(Transform):
     """Writes the operator's decision keys on every frame (reset and step).
 
-    This is where the operator's answer enters, so it is checked here, on every frame
-    (the env's frames are on the host, where a check costs no device sync; on a device,
-    with ``DCSC_CHECK_FINITE=1``): the observation the operator is shown must be finite
-    (so a NaN from the env is named as such, not as a NaN RT), ``human_action`` must have
-    the action spec's shape, be finite (a NaN is never cast to an integer) and, for a
-    ``OneHot`` spec, be one-hot; ``human_rt`` finite and ``>= 0``.
+    This is where the env's frame and the operator's answer enter, so they are checked
+    here, on every frame, at one reduction per tensor and no device sync
+    (:func:`~dcsc_torchrl.confidence.check_values`): the observation the operator is shown
+    must be finite (so a NaN from the env is named as such, not as a NaN RT),
+    ``human_action`` must have the action spec's shape, be finite (a NaN is never cast to
+    an integer) and, for a ``OneHot`` spec, be one-hot; ``human_rt`` finite and ``>= 0``;
+    ``human_decided`` a bool tensor (a float is never read as a decision).
 
     Args:
         operator: any :class:`HumanOperator`.
@@ -127,8 +134,8 @@ class HumanOperatorTransform(Transform):
             self.set_seed(self.seed)
         for key in self.in_keys:
             observation = tensordict.get(key, None)
-            if observation is not None and _checked_here(observation):
-                check_finite(f"the env's {key!r} (before the operator saw it)", observation)
+            if observation is not None:
+                check_values(f"the env's {key!r} (before the operator saw it)", observation)
         query = tensordict.copy()
         query.set("is_init", is_init)
         if stepped is not None:
@@ -146,25 +153,16 @@ class HumanOperatorTransform(Transform):
         action = answer.get(action_key)
         if action.shape != shape:
             raise ValueError(f"the operator's {action_key} has shape {tuple(action.shape)}, expected {tuple(shape)}")
-        if _checked_here(action):
-            if action.is_floating_point():
-                check_finite(f"the operator's {action_key} ({operator})", action)
-            if one_hot:
-                binary = (action == 0) | (action == 1)
-                rows = binary.all(-1) & (action.sum(-1) == 1)
-                if not bool(rows.all()):
-                    index = tuple(int(i) for i in (~rows).nonzero()[0])
-                    raise ValueError(
-                        f"the operator's {action_key} ({operator}) must be one-hot for a OneHot action spec "
-                        f"(one 1, the rest 0), got {action[index].tolist()} at batch index {index}"
-                    )
-        rt = answer.get(rt_key)
-        check_finite(f"the operator's {rt_key} ({operator})", rt)
-        if (rt < 0).any():
-            raise ValueError(f"the operator's {rt_key} must be >= 0 seconds, got {rt.min().item()}")
+        check_values(f"the operator's {action_key} ({operator})", action)
+        if one_hot:
+            _check_one_hot(f"the operator's {action_key} ({operator})", action)
+        rt = check_values(f"the operator's {rt_key} ({operator})", answer.get(rt_key), 0.0)
+        decided = answer.get(decided_key)
+        if decided.dtype != torch.bool:
+            raise ValueError(f"the operator's {decided_key} ({operator}) must be a bool tensor, got {decided.dtype}")
         tensordict.set(action_key, action.to(dtype))
         tensordict.set(rt_key, rt.to(torch.get_default_dtype()).reshape(*tensordict.batch_size, 1))
-        tensordict.set(decided_key, answer.get(decided_key).to(torch.bool).reshape(*tensordict.batch_size, 1))
+        tensordict.set(decided_key, decided.reshape(*tensordict.batch_size, 1))
         return tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:

@@ -144,7 +144,7 @@ def test_a_tiny_actor_critic_run_improves_its_return_on_a_fixed_seed(algorithm):
     env.append_transform(StepCounter())
     env.set_seed(0)
     hidden = list(cfg.network.hidden)
-    actor, loss, optim = make_actor_critic(cfg, lunar_actor(hidden, 0.0, obs_dims=4, n_actions=2),
+    actor, loss, optim = make_actor_critic(cfg, lunar_actor(hidden, 0.0, obs_dims=4, n_actions=2, in_dims=4),
                                   lunar_critic(hidden, 1, obs_dims=4), env.full_action_spec["action"])
     collector = Collector(env, actor, frames_per_batch=40, total_frames=40 * 150,
                           auto_register_policy_transforms=False)

@@ -13,6 +13,7 @@ clock) and get exact RTs.
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import time
@@ -23,6 +24,8 @@ import numpy as np
 import torch
 from gymnasium.envs.box2d.lunar_lander import FPS, VIEWPORT_H, VIEWPORT_W
 from tensordict import TensorDict, TensorDictBase
+
+from dcsc_torchrl.confidence import check_in_range
 
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 import pygame  # noqa: E402  (after the prompt is silenced)
@@ -170,8 +173,8 @@ class KeyboardPilot:
         frame_source: returns the frame to show (e.g. a ``render_mode="rgb_array"``
             env's ``render``); ``None`` shows a blank frame.
         t_d: seconds without a change that count as a decision with RT > t_d (the
-            t_d of :class:`~dcsc_torchrl.transforms.HumanConfidenceTransform`).
-        fps: frames per second (the env's 50).
+            t_d of :class:`~dcsc_torchrl.transforms.HumanConfidenceTransform`), > 0 and finite.
+        fps: frames per second (the env's 50), > 0 and finite.
         screen: where frames go (default: a :class:`PygameScreen`).
         clock: paces the frames (default: ``pygame.time.Clock()``).
         events: returns the pygame events since the last call (default
@@ -180,6 +183,7 @@ class KeyboardPilot:
         joystick: open the joysticks pygame finds.
 
     Raises:
+        ValueError: for a ``t_d`` or ``fps`` that is not > 0 and finite.
         NoDisplayError: no display (without an injected ``screen``); the message
             points to :class:`~dcsc_torchrl.humans.SimulatedPilot`.
     """
@@ -196,10 +200,8 @@ class KeyboardPilot:
         time_source: Callable[[], float] = time.perf_counter,
         joystick: bool = True,
     ) -> None:
-        if not t_d > 0:
-            raise ValueError(f"t_d must be > 0, got {t_d!r}")
-        if not fps > 0:
-            raise ValueError(f"fps must be > 0, got {fps!r}")
+        check_in_range("t_d", t_d, 0.0, math.inf, low_inclusive=False, high_inclusive=False)
+        check_in_range("fps", fps, 0.0, math.inf, low_inclusive=False, high_inclusive=False)
         self.screen = PygameScreen() if screen is None else screen
         self.clock = pygame.time.Clock() if clock is None else clock
         self.events = pygame.event.get if events is None else events
