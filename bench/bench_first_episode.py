@@ -25,6 +25,7 @@ from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.episodes import EpisodeBatch, run_scenarios
 from dcsc_torchrl.methods import build_policy, make_arbiter
 from dcsc_torchrl.networks import machine_from_checkpoint
+from dcsc_torchrl.recipes.settings import cell_settings, task_config
 from dcsc_torchrl.shipped import shipped_path
 from dcsc_torchrl.tasks import TASK_NAMES, get_task
 from dcsc_torchrl.transforms import (
@@ -32,7 +33,6 @@ from dcsc_torchrl.transforms import (
     HumanConfidenceTransform,
     HumanOperatorTransform,
 )
-from recipes.shared_control import cell_settings, task_config
 
 
 def play(task_name: str, seeds: list[int], beta: float, first_episode_only: bool) -> tuple[EpisodeBatch, float]:

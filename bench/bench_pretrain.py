@@ -39,8 +39,9 @@ import torch
 from omegaconf import DictConfig
 
 from dcsc_torchrl.config import load_config
+from dcsc_torchrl.recipes.configs import RECIPES_DIR
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+RECIPES = RECIPES_DIR
 
 
 @dataclass(frozen=True)
@@ -62,7 +63,7 @@ def ours(task: str, frames: int, out: Path, *overrides: str) -> tuple[float, int
     checkpoints (the final evaluation is switched off), as a user's run pays them too.
     """
     bench = TASKS[task]
-    main = importlib.import_module(f"recipes.{bench.recipe}").main
+    main = importlib.import_module(f"dcsc_torchrl.recipes.{bench.recipe}").main
     start = time.perf_counter()
     main(["--out", str(out), f"train.episodes={max(1, frames // bench.frames_per_episode)}", bench.no_eval,
           *overrides])

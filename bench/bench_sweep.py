@@ -37,11 +37,12 @@ from torchrl.modules import OneHotCategorical, ProbabilisticActor
 from dcsc_torchrl.config import load_config
 from dcsc_torchrl.methods import METHOD_NAMES as METHODS
 from dcsc_torchrl.methods import task_methods
+from dcsc_torchrl.recipes.configs import CONFIGS, SWEEP_CONFIG
+from dcsc_torchrl.recipes.machines import pretrained_machine
+from dcsc_torchrl.recipes.sweep import connect, run_sweep, task_grid
 from dcsc_torchrl.tasks import TASK_NAMES as TASKS
 from dcsc_torchrl.tasks import get_task
 from dcsc_torchrl.training import make_collector
-from recipes.shared_control import RECIPES, pretrained_machine
-from recipes.sweep import CONFIG, connect, run_sweep, task_grid
 
 RAY_WORKERS = (1, 2)
 COLLECTOR_WORKERS = (1, 2)
@@ -75,7 +76,7 @@ def makespan(seconds: list[float], slots: int) -> float:
 def bench_sweep(root: Path) -> tuple[int, list[tuple[int, float, float]], dict[str, tuple[float, float]]]:
     """Cells; (Ray workers, Ray start s, sweep s) per setting; per task, seconds per cell and per
     env-frame (1 worker)."""
-    sweep_cfg = load_config(CONFIG, ["operators=[expert,noisy]", "pretrain_seeds=[0]"], quick=True)
+    sweep_cfg = load_config(SWEEP_CONFIG, ["operators=[expert,noisy]", "pretrain_seeds=[0]"], quick=True)
     grids = [task_grid(task, sweep_cfg, [f"pretrain.out_dir={root / f'pretrain_{task}'}"], quick=True)
              for task in TASKS]
     for grid in grids:
@@ -103,7 +104,7 @@ def bench_sweep(root: Path) -> tuple[int, list[tuple[int, float, float]], dict[s
 def collection_rate(task: str, workers: int) -> tuple[float, float]:
     """(start s, frames/s) of the pretraining recipe's collection with ``workers`` processes."""
     spec = get_task(task)
-    cfg = load_config(RECIPES / f"{spec.pretrain_recipe.rsplit('.', 1)[1]}.yaml")
+    cfg = load_config(CONFIGS[spec.name].pretrain)
     actor = spec.make_networks(cfg.network)[0]
     make_env = spec.make_pretraining_envs
     if spec.discrete:
@@ -147,7 +148,7 @@ def main() -> None:
     print("|---|---:|---:|---:|---:|---:|")
     full_cells: list[float] = []
     for task in TASKS:
-        cfg = load_config(RECIPES / f"shared_control_{task}.yaml")
+        cfg = load_config(CONFIGS[task].protocol)
         frames = full_cell_frames(cfg, task)
         n_cells = len(cfg.operator.presets) * len(cfg.pretrain.seeds)
         quick_cell, per_frame = per_cell[task]

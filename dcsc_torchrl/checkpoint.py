@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 import random
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -132,14 +132,15 @@ def save_checkpoint(path: str | os.PathLike, *, task: str, payload: Mapping[str,
     return path
 
 
-def load_checkpoint(path: str | os.PathLike, *, task: str, machine: bool = False) -> dict[str, Any]:
+def load_checkpoint(path: str | os.PathLike, *, task: str, modules: Sequence[str] = ()) -> dict[str, Any]:
     """Reads a checkpoint with ``weights_only=True`` and checks it is one of ``task``, of this format.
 
     Args:
         path: the checkpoint file.
         task: the task it must belong to.
-        machine: also require what a pretrained machine is rebuilt from (the network settings
-            ``config.network`` and the state dicts of the task's ``checkpoint_modules``).
+        modules: for a pretrained machine, the state dicts it is rebuilt from
+            (:attr:`Task.checkpoint_modules <dcsc_torchrl.task.Task.checkpoint_modules>`):
+            also require them and the network settings ``config.network``.
 
     Raises:
         FileNotFoundError: no file at ``path``.
@@ -176,15 +177,14 @@ def load_checkpoint(path: str | os.PathLike, *, task: str, machine: bool = False
         raise CheckpointError(
             f"checkpoint {path} was written for task {data['task']!r}, but this run is for task {task!r}"
         )
-    if machine:
-        _check_machine_entries(data, path, task)
+    if modules:
+        _check_machine_entries(data, path, modules)
     return data
 
 
-def _check_machine_entries(data: Mapping[str, Any], path: Path, task: str) -> None:
+def _check_machine_entries(data: Mapping[str, Any], path: Path, modules: Sequence[str]) -> None:
     """Refuses a checkpoint without what a pretrained machine is rebuilt from: ``config.network``
-    and the state dicts of the task's ``checkpoint_modules`` (each a group of keys)."""
-    from dcsc_torchrl.tasks import get_task
+    and the state dicts ``modules`` (each a group of keys)."""
 
     def has(entry: str) -> bool:
         tree: Any = data
@@ -192,7 +192,7 @@ def _check_machine_entries(data: Mapping[str, Any], path: Path, task: str) -> No
             tree = tree.get(key) if isinstance(tree, Mapping) else None
         return isinstance(tree, Mapping)
 
-    entries = ["config.network", *(f"state.{name}" for name in get_task(task).checkpoint_modules)]
+    entries = ["config.network", *(f"state.{name}" for name in modules)]
     missing = [entry for entry in entries if not has(entry)]
     if missing:
         raise CheckpointError(f"checkpoint {path} lacks {', '.join(missing)} (written by another version of "

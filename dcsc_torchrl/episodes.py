@@ -21,7 +21,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
 from dcsc_torchrl.confidence import flush_frame_checks
-from dcsc_torchrl.tasks import Task
+from dcsc_torchrl.task import Task
 
 FRAME_KEYS = ("observation", "action", "machine_probs", "machine_action", "machine_uncertainty",
               "machine_confidence", "human_confidence", "human_action", "confidence_ratio", "beta")

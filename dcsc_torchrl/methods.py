@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 
     from dcsc_torchrl.arbiters import Arbiter
     from dcsc_torchrl.policy import SharedPolicyModule
-    from dcsc_torchrl.tasks import Task
+    from dcsc_torchrl.task import Task
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 if TYPE_CHECKING:
-    from dcsc_torchrl.tasks import Task
+    from dcsc_torchrl.task import Task
 
 
 LUNAR_OBS_DIMS = 9

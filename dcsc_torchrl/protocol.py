@@ -42,7 +42,7 @@ from dcsc_torchrl.methods import (
 from dcsc_torchrl.networks import authority_critic
 from dcsc_torchrl.online import WARMUP_TARGETS, OnlineLearner, make_online_learner
 from dcsc_torchrl.policy import SharedPolicyModule, plays_operator_alone
-from dcsc_torchrl.tasks import Task
+from dcsc_torchrl.task import Task
 from dcsc_torchrl.transforms import (
     FirstEpisodeOnly,
     HumanConfidenceTransform,

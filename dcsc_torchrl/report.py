@@ -13,7 +13,8 @@ import csv
 import io
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 
 import matplotlib
@@ -26,7 +27,7 @@ import pandas as pd  # noqa: E402
 from dcsc_torchrl.config import UsageError  # noqa: E402
 from dcsc_torchrl.methods import BEST_CONSTANT, METHODS  # noqa: E402
 from dcsc_torchrl.runlog import write_atomic  # noqa: E402
-from dcsc_torchrl.tasks import get_task  # noqa: E402
+from dcsc_torchrl.task import Task  # noqa: E402
 
 REPORT_ORDER = [*(name for name, m in METHODS.items() if m.kind != "sweep"), BEST_CONSTANT.name]
 """The rows of the report's tables: every method, the constant sweep by its best beta."""
@@ -86,9 +87,9 @@ def read_table(path: str | os.PathLike, columns: Sequence[str] = ()) -> pd.DataF
     return frame
 
 
-def episode_table(results_dir: Path, task: str) -> pd.DataFrame:
+def episode_table(results_dir: Path, task: Task) -> pd.DataFrame:
     """``episodes.csv`` of a task's results, checked (:func:`read_table`)."""
-    return read_table(results_dir / "episodes.csv", (*CELL_COLUMNS, "group", "seed", *get_task(task).metrics))
+    return read_table(results_dir / "episodes.csv", (*CELL_COLUMNS, "group", "seed", *task.metrics))
 
 
 def parse_vector(text: str) -> np.ndarray:
@@ -124,10 +125,10 @@ QUICK_NOTE = ("**A `--quick` run.** Its tiny setting (a few short scenarios) tes
               "method: these numbers say nothing about DC-SC.\n")
 
 
-def method_label(task: str, method: str) -> str:
+def method_label(task: Task, method: str) -> str:
     """A method's name in tables and figures (the machine by its pretraining algorithm)."""
     if method == "machine":
-        return get_task(task).machine_label
+        return task.machine_label
     return BEST_CONSTANT.label if method == BEST_CONSTANT.name else METHODS[method].label
 
 
@@ -172,9 +173,9 @@ def with_best_constant(frame: pd.DataFrame) -> pd.DataFrame:
     return pd.concat([frame[frame["method"] != "constant"], keep.assign(method="best_constant")], ignore_index=True)
 
 
-def summary_table(frame: pd.DataFrame, task: str, by: str | None = None) -> str:
+def summary_table(frame: pd.DataFrame, task: Task, by: str | None = None) -> str:
     """A markdown table: one row per method (and ``by`` value), mean ± 95% CI per metric."""
-    metrics = get_task(task).metrics
+    metrics = task.metrics
     keys = ["method"] + ([by] if by else [])
     header = "| " + " | ".join(keys + [f"{m} (mean ± 95% CI)" for m in metrics] + ["n"]) + " |"
     lines = [header, "|" + "---|" * (len(keys) + len(metrics) + 1)]
@@ -189,7 +190,7 @@ def summary_table(frame: pd.DataFrame, task: str, by: str | None = None) -> str:
     return "\n".join(lines)
 
 
-def write_task_summary(results_dir: str | os.PathLike, task: str, main_operator: str, main_seed: int, *,
+def write_task_summary(results_dir: str | os.PathLike, task: Task, main_operator: str, main_seed: int, *,
                        quick: bool = False) -> Path:
     """``summary.md`` of one task: the paper's table (main operator, first pretraining seed),
     its per-group table, and the beyond-the-paper tables (every preset, every seed).
@@ -202,7 +203,7 @@ def write_task_summary(results_dir: str | os.PathLike, task: str, main_operator:
     main = val[(val["operator"] == main_operator) & (val["pretrain_seed"] == main_seed)]
     setting = "a quick run's tiny setting" if quick else "the paper's setting"
     parts = [
-        f"# {task}: validation results\n",
+        f"# {task.name}: validation results\n",
         *([QUICK_NOTE] if quick else []),
         f"Operator `{main_operator}`, pretraining seed {main_seed}, {main['seed'].nunique()} scenarios in groups "
         f"of {group_size(main)} ({setting}). Mean ± 95% CI (normal approximation).\n",
@@ -233,7 +234,7 @@ def constant_sweep(episodes: pd.DataFrame) -> pd.DataFrame:
     return sweep.groupby(["operator", "constant_beta"])[["success", "return"]].mean().reset_index()
 
 
-def _constant_sweep_section(episodes: pd.DataFrame, task: str) -> list[str]:
+def _constant_sweep_section(episodes: pd.DataFrame, task: Task) -> list[str]:
     sweep = constant_sweep(episodes)
     if sweep.empty:
         return []
@@ -346,13 +347,13 @@ def _save(fig: plt.Figure, path: Path, *, tight: bool = True) -> Path:
     return path
 
 
-def plot_performance(frame: pd.DataFrame, task: str, path: Path, title: str) -> Path:
+def plot_performance(frame: pd.DataFrame, task: Task, path: Path, title: str) -> Path:
     """Figs. 2 / 4: success rate, steps or path length, and return per group of scenarios."""
     methods = _methods(frame)
     groups = sorted(frame["group"].unique())
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     width = 0.8 / max(len(methods), 1)
-    for metric, ax in zip(get_task(task).metrics, axes, strict=True):
+    for metric, ax in zip(task.metrics, axes, strict=True):
         for i, method in enumerate(methods):
             sub = frame[frame["method"] == method]
             stats = [mean_ci(sub[sub["group"] == g][metric]) for g in groups]
@@ -370,7 +371,7 @@ def plot_performance(frame: pd.DataFrame, task: str, path: Path, title: str) -> 
     return _save(fig, path)
 
 
-def plot_confidence(trace: pd.DataFrame, task: str, path: Path, title: str, method: str = "dcsc_centred") -> Path:
+def plot_confidence(trace: pd.DataFrame, task: Task, path: Path, title: str, method: str = "dcsc_centred") -> Path:
     """Figs. 3a / 6a: human and machine confidence, and beta, along a learned arbiter's episode."""
     if method not in set(trace["method"]):
         method = "dcsc"
@@ -394,7 +395,7 @@ def plot_confidence(trace: pd.DataFrame, task: str, path: Path, title: str, meth
     return _save(fig, path)
 
 
-def plot_constant_sweep(episodes: pd.DataFrame, task: str, path: Path, title: str) -> Path:
+def plot_constant_sweep(episodes: pd.DataFrame, task: Task, path: Path, title: str) -> Path:
     """Success against a constant beta, one panel per operator, with the learned arbiters' points."""
     sweep = constant_sweep(episodes)
     operators = sorted(sweep["operator"].unique())
@@ -440,12 +441,11 @@ def plot_theta(theta: pd.DataFrame, path: Path, title: str) -> Path:
     return _save(fig, path)
 
 
-def plot_authority(trace: pd.DataFrame, task: str, path: Path, title: str) -> Path:
+def plot_authority(trace: pd.DataFrame, task: Task, path: Path, title: str) -> Path:
     """Figs. 3b / 6b: the machine's, the operator's and the shared action along DC-SC's episode."""
     method = "dcsc_centred" if "dcsc_centred" in set(trace["method"]) else "dcsc"
     dcsc = trace[trace["method"] == method]
-    spec = get_task(task)
-    if spec.discrete:
+    if task.discrete:
         fig, axes = plt.subplots(3, 1, figsize=(9, 6), sharex=True)
         for ax, who in zip(axes, ("machine", "operator", "shared"), strict=True):
             ax.step(dcsc["step"], dcsc[f"{who}_action"], where="post", label=f"{who} action")
@@ -454,9 +454,9 @@ def plot_authority(trace: pd.DataFrame, task: str, path: Path, title: str) -> Pa
             ax.grid(alpha=0.3)
             ax.legend(loc="upper right", fontsize=8)
     else:
-        dims = spec.action_names
+        dims = task.action_names
         fig, axes = plt.subplots(len(dims), 1, figsize=(9, 7), sharex=True)
-        for ax, dim, label in zip(axes, dims, spec.action_labels, strict=True):
+        for ax, dim, label in zip(axes, dims, task.action_labels, strict=True):
             for who in ("machine", "operator", "shared"):
                 ax.plot(dcsc["step"], dcsc[f"{who}_{dim}"], label=who, lw=2 if who == "shared" else 1)
             ax.set_ylabel(label)
@@ -467,7 +467,7 @@ def plot_authority(trace: pd.DataFrame, task: str, path: Path, title: str) -> Pa
     return _save(fig, path)
 
 
-def plot_reward_over_time(trace: pd.DataFrame, task: str, path: Path, title: str) -> Path:
+def plot_reward_over_time(trace: pd.DataFrame, task: Task, path: Path, title: str) -> Path:
     """Fig. 5a: cumulative reward along the traced scenario, per method."""
     fig, ax = plt.subplots(figsize=(8, 4.2))
     for method in _methods(trace):
@@ -481,8 +481,9 @@ def plot_reward_over_time(trace: pd.DataFrame, task: str, path: Path, title: str
     return _save(fig, path)
 
 
-def plot_uav_trajectories(trace: pd.DataFrame, scenario_seed: int, path: Path, title: str) -> Path:
-    """Fig. 5b: the 3-D paths of every method through the traced scenario."""
+def plot_uav_trajectories(trace: pd.DataFrame, scenario_seed: int, path: Path, title: str,
+                          label: Callable[[str], str]) -> Path:
+    """Fig. 5b: the 3-D paths of every method through the traced scenario, each named by ``label``."""
     import torch
 
     from dcsc_torchrl.envs.uav import sample_scenario
@@ -496,19 +497,19 @@ def plot_uav_trajectories(trace: pd.DataFrame, scenario_seed: int, path: Path, t
         paths[method] = np.concatenate([scenario.start.reshape(1, 3).numpy(), positions])
     main = "dcsc" if "dcsc" in paths else next(iter(paths))
     fig = plot_uav_episode(torch.as_tensor(paths[main]), scenario.obstacle_params, scenario.goal,
-                           title=title, label=method_label("uav", main))
+                           title=title, label=label(main))
     ax = fig.axes[0]
     styles = {"machine": ("black", "--"), "operator": ("saddlebrown", ":"), "hula": ("magenta", "-.")}
     for method, points in paths.items():
         if method != main:
             color, style = styles.get(method, ("gray", "-"))
             ax.plot(points[:, 0], points[:, 1], points[:, 2], color=color, ls=style, lw=1.8,
-                    label=method_label("uav", method))
+                    label=label(method))
     ax.legend(fontsize=8)
     return _save(fig, path, tight=False)
 
 
-def write_task_figures(results_dir: str | os.PathLike, task: str, main_operator: str, main_seed: int) -> list[Path]:
+def write_task_figures(results_dir: str | os.PathLike, task: Task, main_operator: str, main_seed: int) -> list[Path]:
     """Every figure of one task into ``results_dir`` (PNG)."""
     results_dir = Path(results_dir)
     episodes = episode_table(results_dir, task)
@@ -516,8 +517,7 @@ def write_task_figures(results_dir: str | os.PathLike, task: str, main_operator:
     val = with_best_constant(episodes[(episodes["phase"] == "validation") & (episodes["operator"] == main_operator)
                                       & (episodes["pretrain_seed"] == main_seed)])
     trace = trace[trace["phase"] == "validation"]
-    spec = get_task(task)
-    name = spec.title
+    name = task.title
     paths = [
         plot_performance(val, task, results_dir / "fig_performance.png",
                          f"{name}: performance per scenario group (operator '{main_operator}')"),
@@ -532,7 +532,7 @@ def write_task_figures(results_dir: str | os.PathLike, task: str, main_operator:
         theta = theta_table(results_dir / "theta.csv")
         if len(theta):
             paths.append(plot_theta(theta, results_dir / "fig_theta.png", f"{name}: θ over the online updates"))
-    if spec.plot_trajectories is not None:
-        paths.append(spec.plot_trajectories(trace, int(trace["seed"].iloc[0]), results_dir / "fig_trajectory.png",
-                                            f"{name}: trajectories, scenario 0"))
+    if task.plot_trajectories is not None:
+        paths.append(task.plot_trajectories(trace, int(trace["seed"].iloc[0]), results_dir / "fig_trajectory.png",
+                                            f"{name}: trajectories, scenario 0", partial(method_label, task)))
     return paths

@@ -8,14 +8,11 @@ networks (:attr:`Task.make_networks`), so ``dcsc run <task> pretrain.shipped=tru
 ``dcsc play --assist dcsc`` and a first try work without pretraining; ``make reproduce``
 still pretrains from scratch.
 
-    python -m dcsc_torchrl.shipped TASK CHECKPOINT    # re-export a pretraining checkpoint
+    dcsc ship TASK CHECKPOINT    # re-export a pretraining checkpoint
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +20,7 @@ import torch
 
 from dcsc_torchrl.checkpoint import load_checkpoint, save_checkpoint
 from dcsc_torchrl.networks import machine_from_checkpoint
-from dcsc_torchrl.tasks import TASK_NAMES, Task, get_task
+from dcsc_torchrl.task import Task
 
 SHIPPED_DIR = Path(__file__).parent / "pretrained"
 SHIPPED_SEED = 0
@@ -84,17 +81,3 @@ def load_shipped(task: Task) -> dict[str, Any]:
 def shipped_machine(task: Task) -> tuple[torch.nn.Module, torch.nn.Module]:
     """``task``'s shipped actor and critic, in the recipe's networks, in eval mode."""
     return machine_from_checkpoint(load_shipped(task), task)
-
-
-def main(argv: Sequence[str] | None = None) -> Path:
-    parser = argparse.ArgumentParser(prog="python -m dcsc_torchrl.shipped", description=__doc__.split("\n\n")[0])
-    parser.add_argument("task", choices=TASK_NAMES)
-    parser.add_argument("checkpoint", type=Path, help="a pretraining checkpoint (checkpoint.pt)")
-    args = parser.parse_args(argv)
-    path = export_machine(get_task(args.task), args.checkpoint)
-    print(f"shipped machine in {path}", file=sys.stderr)
-    return path
-
-
-if __name__ == "__main__":
-    main()

@@ -1,4 +1,4 @@
-"""What every recipe shares: arguments, the run directory, episode logging, checkpoints, resume.
+"""What every pretraining recipe shares: the run directory, episode logging, checkpoints, resume.
 
 A recipe (``recipes/*.py``) owns its algorithm; a :class:`TrainingRun` owns the
 bookkeeping around it. Training is cut into *segments* of ``checkpoint_every`` episodes:
@@ -11,13 +11,11 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
@@ -35,35 +33,9 @@ from dcsc_torchrl.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from dcsc_torchrl.config import ConfigError, config_diff, load_config
+from dcsc_torchrl.config import ConfigError, config_diff
 from dcsc_torchrl.episodes import in_first_episode
 from dcsc_torchrl.runlog import Progress, RunLog, plot_learning_curve
-
-
-@dataclass
-class RecipeArgs:
-    """A recipe's command line: ``[--quick] [--resume] [--out DIR] [key=value ...]``."""
-
-    quick: bool = False
-    resume: bool = False
-    out: Path | None = None
-    overrides: list[str] = field(default_factory=list)
-
-
-def parse_recipe_args(argv: Sequence[str] | None, description: str) -> RecipeArgs:
-    """A pretraining recipe's command line, parsed by the ``dcsc pretrain`` options (one home)."""
-    from dcsc_torchrl.cli import Parser, add_recipe_options
-
-    ns = add_recipe_options(Parser(description=description.strip().split("\n\n")[0])).parse_args(argv)
-    return RecipeArgs(ns.quick, ns.resume, ns.out, list(ns.overrides))
-
-
-def recipe_config(config_path: str | os.PathLike, args: RecipeArgs) -> DictConfig:
-    """The recipe's config with ``--quick`` and the overrides applied; ``--out`` wins."""
-    cfg = load_config(config_path, args.overrides, quick=args.quick)
-    if args.out is not None:
-        cfg.logger.out_dir = str(args.out)
-    return cfg
 
 
 def make_collector(

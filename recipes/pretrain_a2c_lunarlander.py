@@ -11,9 +11,10 @@ pad included. Training stops after ``train.episodes`` episodes (or, with
 checkpoint is written, and ``--resume`` continues from the last one. With ``train.keep_best``
 the run's result is the checkpoint of its best landing check (``best.pt``), not its last.
 
-    python recipes/pretrain_a2c_lunarlander.py [--quick] [--resume] [--out DIR] [key=value ...]
+    dcsc pretrain lunarlander [--quick] [--resume] [--out DIR] [key=value ...]    # or: python recipes/pretrain_a2c_lunarlander.py ...
 
-Outputs in ``logger.out_dir``: ``train.csv`` (one row per episode), ``checkpoint.pt``,
+Outputs in the run folder (``--out``; by default ``<pretrain.out_dir>/seed<seed>/`` of the task's protocol
+yaml, where ``dcsc run`` reads the machine): ``train.csv`` (one row per episode), ``checkpoint.pt``,
 ``learning_curve.png``, ``eval.csv`` (machine-only greedy episodes, standard and moved pad)
 and, with ``train.stop_success > 0`` or ``train.keep_best``, ``stop_checks.csv`` (the landing
 check after each segment) and, with ``train.keep_best``, ``best.pt``.
@@ -38,15 +39,15 @@ from dcsc_torchrl.batched_envs import make_lunar_env
 from dcsc_torchrl.config import ConfigError, to_plain
 from dcsc_torchrl.losses import QCriticLoss
 from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic, orthogonal_init_
+from dcsc_torchrl.recipes import pretrain
+from dcsc_torchrl.recipes.configs import CONFIGS
 from dcsc_torchrl.training import (
     TrainingRun,
     greedy_episodes,
     make_collector,
-    parse_recipe_args,
-    recipe_config,
 )
 
-CONFIG = Path(__file__).with_suffix(".yaml")
+CONFIG = CONFIGS["lunarlander"].pretrain
 COLUMNS = ["episode", "frames", "return", "steps", "success",
            "loss_objective", "loss_critic", "loss_entropy", "loss_qvalue"]
 LR_SCHEDULES = ("constant", "linear")  # optim.lr_schedule: Table A1's constant lr, or linear to 0 over the budget
@@ -217,8 +218,8 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
-    args = parse_recipe_args(argv, __doc__)
-    return train(recipe_config(CONFIG, args), resume=args.resume)
+    """``dcsc pretrain lunarlander``'s command line and defaults (:func:`dcsc_torchrl.recipes.pretrain.main`)."""
+    return pretrain.main("lunarlander", train, __doc__, argv)
 
 
 if __name__ == "__main__":

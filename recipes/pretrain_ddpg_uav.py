@@ -7,9 +7,10 @@ later, Eq. 10) and outputs (rho0, sigma0, tau) in [0, 3]. Stops after ``train.ep
 episodes, with atomic checkpoints every ``train.checkpoint_every`` episodes and
 ``--resume``.
 
-    python recipes/pretrain_ddpg_uav.py [--quick] [--resume] [--out DIR] [key=value ...]
+    dcsc pretrain uav [--quick] [--resume] [--out DIR] [key=value ...]    # or: python recipes/pretrain_ddpg_uav.py ...
 
-Outputs in ``logger.out_dir``: ``train.csv``, ``checkpoint.pt``, ``learning_curve.png``
+Outputs in the run folder (``--out``; by default ``<pretrain.out_dir>/seed<seed>/`` of the task's protocol
+yaml, where ``dcsc run`` reads the machine): ``train.csv``, ``checkpoint.pt``, ``learning_curve.png``
 and ``eval.csv`` (machine-only greedy episodes on the 50 validation scenarios).
 """
 
@@ -30,15 +31,15 @@ from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 from dcsc_torchrl.batched_envs import UAV_INFO_KEYS, make_uav_env
 from dcsc_torchrl.config import to_plain
 from dcsc_torchrl.networks import uav_actor, uav_critic
+from dcsc_torchrl.recipes import pretrain
+from dcsc_torchrl.recipes.configs import CONFIGS
 from dcsc_torchrl.training import (
     TrainingRun,
     greedy_episodes,
     make_collector,
-    parse_recipe_args,
-    recipe_config,
 )
 
-CONFIG = Path(__file__).with_suffix(".yaml")
+CONFIG = CONFIGS["uav"].pretrain
 COLUMNS = ["episode", "frames", "return", "steps", "success", "loss_actor", "loss_value"]
 
 
@@ -129,8 +130,8 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
-    args = parse_recipe_args(argv, __doc__)
-    return train(recipe_config(CONFIG, args), resume=args.resume)
+    """``dcsc pretrain uav``'s command line and defaults (:func:`dcsc_torchrl.recipes.pretrain.main`)."""
+    return pretrain.main("uav", train, __doc__, argv)
 
 
 if __name__ == "__main__":

@@ -21,13 +21,14 @@ from pathlib import Path
 import torch
 import yaml
 
-from dcsc_torchrl.cli import Parser, add_reproduce_options
 from dcsc_torchrl.config import UsageError, writable_folder
 from dcsc_torchrl.methods import METHOD_NAMES
+from dcsc_torchrl.recipes.folder import RUN_RECORD
+from dcsc_torchrl.recipes.grid import Executor, checked_grid, local_executor, run_grid
+from dcsc_torchrl.recipes.options import Parser, add_reproduce_options
 from dcsc_torchrl.report import CELL_COLUMNS, read_table, write_task_figures, write_task_summary
 from dcsc_torchrl.runlog import write_atomic
-from dcsc_torchrl.tasks import TASK_NAMES
-from recipes.shared_control import RUN_RECORD, Executor, checked_grid, local_executor, run_grid
+from dcsc_torchrl.tasks import TASK_NAMES, get_task
 
 
 def _traced_cell(task_dir: Path) -> tuple[str, int]:
@@ -62,8 +63,8 @@ def report(results: Path, wall_seconds: float | None = None) -> Path:
     for task in tasks:
         task_dir = results / task
         operator, seed = _traced_cell(task_dir)
-        summary = write_task_summary(task_dir, task, operator, seed, quick=_quick(task_dir))
-        write_task_figures(task_dir, task, operator, seed)
+        summary = write_task_summary(task_dir, get_task(task), operator, seed, quick=_quick(task_dir))
+        write_task_figures(task_dir, get_task(task), operator, seed)
         body = summary.read_text().replace("# ", "## ", 1).replace("\n## ", "\n### ")
         parts.append(body)
     path = (results / "summary.md").resolve()
@@ -78,7 +79,7 @@ def executor(workers: int) -> Executor:
         raise ValueError(f"workers must be >= 1, got {workers}")
     if workers == 1:
         return local_executor
-    from recipes.sweep import ray_executor  # Ray loads only here
+    from dcsc_torchrl.recipes.sweep import ray_executor  # Ray loads only here
 
     return ray_executor(retries=2, address=None, workers=workers)
 

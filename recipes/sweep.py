@@ -14,7 +14,7 @@ sweep runs the grid of cells as Ray tasks, one CPU each (docs/scaling.md):
    ``theta.csv``, ``summary.md`` and the figures: the files ``make reproduce`` writes, rows
    in the same order.
 
-These are the files ``dcsc run`` writes: both are ``recipes.shared_control.run_grid``, the
+These are the files ``dcsc run`` writes: both are ``dcsc_torchrl.recipes.grid.run_grid``, the
 one driver of the grid, ``dcsc run`` with its local executor (one cell after another) and
 the sweep with Ray's (this module), so a sweep and a serial run can finish each other's
 folders; a folder of another config is refused unless ``--fresh``.
@@ -48,37 +48,31 @@ import torch
 from omegaconf import DictConfig
 
 from dcsc_torchrl.checkpoint import load_checkpoint
-from dcsc_torchrl.cli import Parser, add_sweep_options
 from dcsc_torchrl.config import load_config
 from dcsc_torchrl.methods import METHOD_NAMES
 from dcsc_torchrl.networks import machine_from_checkpoint
-from dcsc_torchrl.runlog import Progress
-from dcsc_torchrl.tasks import TASK_NAMES, get_task
-from recipes.shared_control import (
-    TABLES,
+from dcsc_torchrl.recipes.configs import SWEEP_CONFIG
+from dcsc_torchrl.recipes.grid import (
     Cell,
     Executor,
     GridResult,
     TaskGrid,
-    check_names,
     checked_grid,
-    gather,
-    machine_checkpoint,
-    pretrained_machine,
     run_grid,
     write_cell,
 )
-
-CONFIG = Path(__file__).with_suffix(".yaml")
-__all__ = ["TABLES", "Cell", "GridResult", "TaskGrid", "gather", "main", "ray_executor", "run_sweep",
-           "split_overrides", "sweep", "task_grid"]
+from dcsc_torchrl.recipes.machines import machine_checkpoint, pretrained_machine
+from dcsc_torchrl.recipes.options import Parser, add_sweep_options
+from dcsc_torchrl.recipes.settings import check_names
+from dcsc_torchrl.runlog import Progress
+from dcsc_torchrl.tasks import TASK_NAMES, get_task
 
 
 def task_grid(task: str, sweep: DictConfig, overrides: Sequence[str] = (), *, quick: bool) -> TaskGrid:
     """The cells of ``task``: the sweep's presets and seeds, else the protocol config's, each once.
 
     Checked whole before any cell runs, as ``dcsc run`` checks it
-    (:func:`~recipes.shared_control.checked_grid`); ``pretrain.out_dir`` is made absolute: the
+    (:func:`~dcsc_torchrl.recipes.grid.checked_grid`); ``pretrain.out_dir`` is made absolute: the
     cells may run in other processes or nodes.
     """
     return checked_grid(task, quick=quick, overrides=overrides, operators=sweep.operators,
@@ -113,7 +107,7 @@ def run_sweep_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: s
     directory = cell.directory(Path(out))
     directory.mkdir(parents=True, exist_ok=True)
     attempts = _count_attempt(directory)
-    machine, critic = machine_from_checkpoint(load_checkpoint(checkpoint, task=cell.task, machine=True),
+    machine, critic = machine_from_checkpoint(load_checkpoint(checkpoint, task=cell.task, modules=get_task(cell.task).checkpoint_modules),
                                               get_task(cell.task))
     return write_cell(cell, cfg, methods, Path(out), machine, critic,
                       {"attempts": attempts, "host": socket.gethostname(), "pid": os.getpid()})
@@ -148,7 +142,7 @@ def connect(address: str | None, workers: int) -> bool:
 
 
 def ray_executor(*, retries: int, address: str | None, workers: int) -> Executor:
-    """An :class:`~recipes.shared_control.Executor` running cells as Ray tasks.
+    """An :class:`~dcsc_torchrl.recipes.grid.Executor` running cells as Ray tasks.
 
     One Ray task per pretraining checkpoint the cells need (:func:`ensure_pretrained`), then
     one per cell, started once its checkpoint is there; Ray re-runs a failing one
@@ -239,7 +233,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 def sweep(args: argparse.Namespace) -> GridResult:
     """``dcsc sweep``: the configs checked, every cell not done yet run, every task gathered."""
     sweep_overrides, task_overrides = split_overrides(args.overrides)
-    cfg = load_config(CONFIG, sweep_overrides, quick=args.quick)
+    cfg = load_config(SWEEP_CONFIG, sweep_overrides, quick=args.quick)
     check_names("tasks", "task", cfg.tasks, TASK_NAMES)
     methods = tuple(check_names("methods", "method", cfg.methods or METHOD_NAMES, METHOD_NAMES))
     grids = [task_grid(task, cfg, task_overrides[task], quick=args.quick) for task in cfg.tasks]

@@ -34,8 +34,9 @@ from dcsc_torchrl.cli import build_parser, main
 from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
 from dcsc_torchrl.methods import METHOD_NAMES as METHODS
 from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic
-from recipes import shared_control
-from recipes.shared_control import RECIPES, RUN_RECORD, prepare_results
+from dcsc_torchrl.recipes import grid, machines
+from dcsc_torchrl.recipes.configs import RECIPES_DIR as RECIPES
+from dcsc_torchrl.recipes.folder import RUN_RECORD, prepare_results
 
 PRETRAIN_YAML = RECIPES / "pretrain_a2c_lunarlander.yaml"
 TINY = ["scenarios.operator_runs=1", "scenarios.collaboration_runs=1", "scenarios.validation_scenarios=2",
@@ -282,7 +283,7 @@ def test_config_diff_names_changed_added_and_removed_keys():
 # -- dcsc run: resume, folders that never contradict themselves ------------------------
 def test_a_run_killed_after_its_first_cell_resumes_to_the_same_csvs(full_run, machine_dir, tmp_path, monkeypatch,
                                                                      capsys):
-    real = shared_control.run_cell
+    real = grid.run_cell
     calls = []
 
     def killed_at_second_cell(*args, **kwargs):
@@ -291,7 +292,7 @@ def test_a_run_killed_after_its_first_cell_resumes_to_the_same_csvs(full_run, ma
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(shared_control, "run_cell", killed_at_second_cell)
+    monkeypatch.setattr(grid, "run_cell", killed_at_second_cell)
     assert main(run_argv(tmp_path, machine_dir)) == 130
     assert capsys.readouterr().err.strip().splitlines()[-1] == "dcsc: interrupted"
     task_dir = tmp_path / "lunarlander"
@@ -299,7 +300,7 @@ def test_a_run_killed_after_its_first_cell_resumes_to_the_same_csvs(full_run, ma
     assert set(halfway["operator"]) == {"expert"}  # the summary describes what the tables hold
     assert "expert" in (task_dir / "summary.md").read_text()
 
-    monkeypatch.setattr(shared_control, "run_cell", real)
+    monkeypatch.setattr(grid, "run_cell", real)
     (task_dir / "episodes.csv.tmp").write_text("left by a kill")
     assert main(run_argv(tmp_path, machine_dir)) == 0
     assert f"results in {task_dir}" in capsys.readouterr().err
@@ -309,14 +310,14 @@ def test_a_run_killed_after_its_first_cell_resumes_to_the_same_csvs(full_run, ma
 
 
 def test_a_finished_run_run_again_runs_no_cell(full_run, machine_dir, monkeypatch):
-    monkeypatch.setattr(shared_control, "run_cell", lambda *a, **k: pytest.fail("a finished cell ran again"))
+    monkeypatch.setattr(grid, "run_cell", lambda *a, **k: pytest.fail("a finished cell ran again"))
     episodes = (full_run / "episodes.csv").read_bytes()
     assert main(run_argv(full_run.parent, machine_dir)) == 0
     assert (full_run / "episodes.csv").read_bytes() == episodes
 
 
 def test_a_run_into_a_folder_of_another_config_is_refused(full_run, machine_dir, monkeypatch, capsys):
-    monkeypatch.setattr(shared_control, "run_cell", lambda *a, **k: pytest.fail("a cell ran into a foreign folder"))
+    monkeypatch.setattr(grid, "run_cell", lambda *a, **k: pytest.fail("a cell ran into a foreign folder"))
     assert main(run_argv(full_run.parent, machine_dir, "protocol.max_steps=31")) == 2
     line = one_line_error(capsys)
     assert str(full_run) in line and "protocol.max_steps: 30 -> 31" in line and "--fresh" in line
@@ -415,12 +416,10 @@ def test_the_errors_shown_in_docs_cli_md_are_the_ones_printed(capsys, tmp_path, 
 def test_dcsc_pretrain_writes_where_dcsc_run_reads(quick, monkeypatch, capsys):
     seen = {}
 
-    class Recipe:
-        @staticmethod
-        def train(cfg, *, resume):
-            seen["cfg"], seen["resume"] = cfg, resume
+    def train(cfg, *, resume=False):
+        seen["cfg"], seen["resume"] = cfg, resume
 
-    monkeypatch.setattr(cli.importlib, "import_module", lambda name: Recipe)
+    monkeypatch.setitem(machines.PRETRAINING, "uav", train)
     assert main(["pretrain", "uav", *(["--quick"] if quick else []), "seed=2"]) == 0
     run_cfg = load_config(RECIPES / "shared_control_uav.yaml", quick=quick)
     expected = checkpoint_path(run_cfg.pretrain.out_dir, 2)

@@ -24,10 +24,10 @@ from dcsc_torchrl.networks import (
     uav_critic,
 )
 from dcsc_torchrl.online import make_online_learner
+from dcsc_torchrl.recipes.configs import CONFIGS
+from dcsc_torchrl.recipes.pretrain_ddpg_uav import main as pretrain_uav
 from dcsc_torchrl.tasks import get_task
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
-from recipes.pretrain_ddpg_uav import main as pretrain_uav
-from recipes.shared_control import RECIPES
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
                                                                    reason="no CUDA device"))]
@@ -60,7 +60,7 @@ def test_batched_uav_env_steps_on_the_device(device):
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("method", METHODS)
 def test_every_arbiter_blends_on_the_device(device, method):
-    cfg = load_config(RECIPES / get_task("uav").config, quick=True)
+    cfg = load_config(CONFIGS["uav"].protocol, quick=True)
     env = uav_env_with_operator(device, cfg)
     if method == "dcsc_frozen":  # built by the protocol from a learned arbiter
         arbiter = FrozenConfidenceArbiter(make_arbiter("dcsc_centred", 3, theta_init=0.0),
@@ -77,7 +77,7 @@ def test_every_arbiter_blends_on_the_device(device, method):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_ddpg_loss_with_the_shared_policy_learns_theta_on_the_device(device):
-    cfg = load_config(RECIPES / get_task("uav").config, quick=True)
+    cfg = load_config(CONFIGS["uav"].protocol, quick=True)
     env = uav_env_with_operator(device, cfg)
     torch.manual_seed(0)
     policy = build_policy(uav_actor([16], 0.05).to(device), make_arbiter("dcsc", 3, theta_init=1.0),
@@ -96,7 +96,7 @@ def test_ddpg_loss_with_the_shared_policy_learns_theta_on_the_device(device):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_theta_loss_learns_theta_on_the_device(device):
-    cfg = load_config(RECIPES / get_task("lunarlander").config, quick=True)
+    cfg = load_config(CONFIGS["lunarlander"].protocol, quick=True)
     torch.manual_seed(0)
     policy = build_policy(lunar_actor([16], 0.1).to(device), make_arbiter("dcsc", 1, theta_init=1.0), OneHot(4),
                           discrete=True, **cfg.machine).to(device)

@@ -30,9 +30,11 @@ from dcsc_torchrl import report, runlog
 from dcsc_torchrl.checkpoint import FORMAT_VERSION, checkpoint_path, save_checkpoint
 from dcsc_torchrl.cli import main
 from dcsc_torchrl.config import NULLABLE, load_config
+from dcsc_torchrl.recipes import grid
+from dcsc_torchrl.recipes.configs import RECIPES_DIR as RECIPES
+from dcsc_torchrl.recipes.folder import RUN_RECORD, prepare_results
 from dcsc_torchrl.runlog import RunLog, write_atomic
-from recipes import shared_control
-from recipes.shared_control import RECIPES, RUN_RECORD, prepare_results
+from dcsc_torchrl.tasks import get_task
 
 LUNAR = RECIPES / "shared_control_lunarlander.yaml"
 TINY = ["pretrain.shipped=true", "pretrain.seeds=[0]", "scenarios.operator_runs=1", "scenarios.machine_alone_runs=1",
@@ -151,7 +153,7 @@ def test_a_repeated_entry_of_a_list_of_things_run_once_is_dropped_with_a_warning
                                      ["play", "lunarlander", "--assist", "none"]])
 def test_an_out_that_is_a_file_is_one_line_naming_it(command, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(shared_control, "run_cell", lambda *a, **k: pytest.fail("a cell ran"))
+    monkeypatch.setattr(grid, "run_cell", lambda *a, **k: pytest.fail("a cell ran"))
     (tmp_path / "taken").write_text("a file")
     assert exit_code([*command, "--out", "taken"]) == 2
     line = one_line(capsys)
@@ -254,7 +256,7 @@ def test_the_figure_labels_the_real_group_size(quick_run, monkeypatch):
     task_dir, _ = quick_run
     labels = []
     monkeypatch.setattr(report, "_save", lambda fig, path, **_: labels.append(fig.axes[0].get_xlabel()) or path)
-    report.write_task_figures(task_dir, "lunarlander", "expert", 0)
+    report.write_task_figures(task_dir, get_task("lunarlander"), "expert", 0)
     assert labels[0] == "scenario group (1 scenarios each)"
 
 
@@ -287,7 +289,7 @@ def test_report_words_a_quick_run_as_its_run_did(quick_run, tmp_path):
 def test_a_second_run_into_a_folder_in_use_is_refused_and_a_stale_lock_does_not_block(quick_run, monkeypatch,
                                                                                        capsys):
     task_dir, _ = quick_run
-    monkeypatch.setattr(shared_control, "run_cell", lambda *a, **k: pytest.fail("a finished cell ran again"))
+    monkeypatch.setattr(grid, "run_cell", lambda *a, **k: pytest.fail("a finished cell ran again"))
     argv = quick_argv(task_dir.parent, "--operators", "expert")
     with open(task_dir / ".lock", "a+") as held:  # what a running `dcsc run` holds
         fcntl.flock(held, fcntl.LOCK_EX)
@@ -300,7 +302,7 @@ def test_a_second_run_into_a_folder_in_use_is_refused_and_a_stale_lock_does_not_
 
 def test_the_same_command_from_another_folder_resumes(quick_run, tmp_path, monkeypatch):
     task_dir, _ = quick_run
-    monkeypatch.setattr(shared_control, "run_cell", lambda *a, **k: pytest.fail("a finished cell ran again"))
+    monkeypatch.setattr(grid, "run_cell", lambda *a, **k: pytest.fail("a finished cell ran again"))
     monkeypatch.chdir(tmp_path)
     assert exit_code(quick_argv(task_dir.parent, "--operators", "expert")) == 0
     record = yaml.safe_load((task_dir / RUN_RECORD).read_text())
@@ -333,7 +335,7 @@ def full_disk(*_, **__):
 
 def test_a_full_disk_while_gathering_is_one_line_naming_the_file_and_loses_nothing(quick_run, monkeypatch, capsys):
     task_dir, _ = quick_run
-    monkeypatch.setattr(shared_control, "run_cell", lambda *a, **k: pytest.fail("a finished cell ran again"))
+    monkeypatch.setattr(grid, "run_cell", lambda *a, **k: pytest.fail("a finished cell ran again"))
     before = (task_dir / "episodes.csv").read_bytes()
 
     def half_then_full(self, buf=None, *args, **kwargs):

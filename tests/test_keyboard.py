@@ -13,18 +13,18 @@ from torchrl.envs.utils import ExplorationType, check_env_specs
 
 from dcsc_torchrl.batched_envs import LUNAR_ID
 from dcsc_torchrl.checkpoint import save_checkpoint
+from dcsc_torchrl.cli import main as dcsc
 from dcsc_torchrl.humans import KeyboardPilot, NoDisplayError
-from dcsc_torchrl.humans.play import (
+from dcsc_torchrl.networks import lunar_actor, lunar_critic
+from dcsc_torchrl.recipes.play import (
     PlayRecorder,
     load_machine,
-    main,
     make_learner,
     make_play_env,
     make_policy,
     play,
     play_config,
 )
-from dcsc_torchrl.networks import lunar_actor, lunar_critic
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
 
 FPS = 50
@@ -344,28 +344,28 @@ def test_quitting_mid_episode_keeps_the_frames_flown(tmp_path):
     assert not (tmp_path / "episodes.csv").exists()
 
 
-def test_play_with_a_display_that_does_not_answer_fails_with_one_line(monkeypatch):
+def test_play_with_a_display_that_does_not_answer_fails_with_one_line(monkeypatch, capsys):
     # SDL falls back to its invisible offscreen driver when DISPLAY's server is not running
     monkeypatch.delenv("SDL_VIDEODRIVER", raising=False)
     monkeypatch.setenv("DISPLAY", ":99")
     monkeypatch.setattr(pygame.display, "init", lambda: None)
     monkeypatch.setattr(pygame.display, "set_mode", lambda size: None)
     monkeypatch.setattr(pygame.display, "get_driver", lambda: "offscreen")
-    with pytest.raises(SystemExit, match=r"DISPLAY=:99 is set but no display server answers there") as stop:
-        main(["lunarlander", "--assist", "none"])
-    assert "\n" not in str(stop.value.code)
+    assert dcsc(["play", "lunarlander", "--assist", "none"]) == 2
+    err = capsys.readouterr().err
+    assert "DISPLAY=:99 is set but no display server answers there" in err and err.count("\n") == 1
 
 
-def test_play_without_a_checkpoint_says_how_to_get_one(tmp_path):
-    with pytest.raises(SystemExit, match="dcsc pretrain lunarlander"):
-        main(["lunarlander", "--checkpoint", str(tmp_path / "missing.pt")])
+def test_play_without_a_checkpoint_says_how_to_get_one(tmp_path, capsys):
+    assert dcsc(["play", "lunarlander", "--checkpoint", str(tmp_path / "missing.pt")]) == 2
+    assert "dcsc pretrain lunarlander" in capsys.readouterr().err
 
 
-def test_play_without_a_display_points_to_the_simulated_pilot(monkeypatch):
+def test_play_without_a_display_points_to_the_simulated_pilot(monkeypatch, capsys):
     for var in ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER"):
         monkeypatch.delenv(var, raising=False)
-    with pytest.raises(SystemExit, match="SimulatedPilot"):
-        main(["lunarlander", "--assist", "none"])
+    assert dcsc(["play", "lunarlander", "--assist", "none"]) == 2
+    assert "SimulatedPilot" in capsys.readouterr().err
 
 
 def test_keyboard_pilot_rejects_a_bad_t_d():

@@ -19,7 +19,7 @@ from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.networks import lunar_actor
 from dcsc_torchrl.training import make_collector
 
-RECIPES = {"lunarlander": "recipes.pretrain_a2c_lunarlander", "uav": "recipes.pretrain_ddpg_uav"}
+RECIPES = {"lunarlander": "dcsc_torchrl.recipes.pretrain_a2c_lunarlander", "uav": "dcsc_torchrl.recipes.pretrain_ddpg_uav"}
 
 
 @pytest.mark.parametrize("task", sorted(RECIPES))

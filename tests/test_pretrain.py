@@ -20,8 +20,8 @@ from dcsc_torchrl.config import ConfigError, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = {
-    "lunarlander": "recipes.pretrain_a2c_lunarlander",
-    "uav": "recipes.pretrain_ddpg_uav",
+    "lunarlander": "dcsc_torchrl.recipes.pretrain_a2c_lunarlander",
+    "uav": "dcsc_torchrl.recipes.pretrain_ddpg_uav",
 }
 COLUMNS = {
     "lunarlander": ["episode", "frames", "return", "steps", "success", "loss_objective", "loss_critic",
@@ -133,8 +133,12 @@ def test_a_tiny_actor_critic_run_improves_its_return_on_a_fixed_seed(algorithm):
 
     from dcsc_torchrl.config import load_config
     from dcsc_torchrl.networks import lunar_actor, lunar_critic
+    from dcsc_torchrl.recipes.pretrain_a2c_lunarlander import (
+        CONFIG,
+        actor_critic_step,
+        make_actor_critic,
+    )
     from dcsc_torchrl.training import finished_episodes
-    from recipes.pretrain_a2c_lunarlander import CONFIG, actor_critic_step, make_actor_critic
 
     torch.manual_seed(0)
     cfg = load_config(CONFIG, [f"loss.algorithm={algorithm}"])
@@ -253,11 +257,11 @@ def test_no_evaluation_episodes_skip_the_evaluation(task, no_eval, tmp_path):
 
 def protocol_machine(pretrain_dir: Path, seed: int, *overrides: str) -> None:
     """The LunarLander protocol's ``pretrained_machine`` for ``seed`` of ``pretrain_dir`` (quick config)."""
+    from dcsc_torchrl.recipes.configs import CONFIGS
+    from dcsc_torchrl.recipes.machines import pretrained_machine
     from dcsc_torchrl.tasks import get_task
-    from recipes.shared_control import RECIPES as PROTOCOL_CONFIGS
-    from recipes.shared_control import pretrained_machine
 
-    cfg = load_config(PROTOCOL_CONFIGS / "shared_control_lunarlander.yaml",
+    cfg = load_config(CONFIGS["lunarlander"].protocol,
                       [f"pretrain.out_dir={pretrain_dir}", *overrides], quick=True)
     pretrained_machine(get_task("lunarlander"), cfg, seed, quick=True)
 

@@ -13,10 +13,11 @@ from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.methods import build_policy, make_arbiter, task_methods
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.online import DiscreteOnlineLearner
+from dcsc_torchrl.recipes.reproduce import reproduce
+from dcsc_torchrl.recipes.settings import task_config
+from dcsc_torchrl.recipes.shared_control import run_task
 from dcsc_torchrl.tasks import get_task
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
-from recipes.reproduce import reproduce
-from recipes.shared_control import run_task, task_config
 
 EPISODE_COLUMNS = {"task", "method", "operator", "pretrain_seed", "phase", "group", "seed", "success", "steps",
                    "return", "path_length", "hula_threshold"}
@@ -194,7 +195,7 @@ def test_plays_operator_alone_holds_even_when_the_machine_puts_all_its_mass_on_a
 def test_a_constant_beta_that_plays_the_operator_alone_takes_the_operators_episodes():
     """The operator's episodes reused for the sweep's beta 0 and 0.3 are the rows playing them gives."""
     from dcsc_torchrl.protocol import run_cell
-    from recipes.shared_control import cell_settings
+    from dcsc_torchrl.recipes.settings import cell_settings
 
     task = get_task("lunarlander")
     cfg = task_config(task, ["scenarios.operator_runs=1", "scenarios.machine_alone_runs=1",

@@ -7,14 +7,14 @@ import torch
 
 from dcsc_torchrl.cli import main
 from dcsc_torchrl.config import load_config
+from dcsc_torchrl.recipes.configs import CONFIGS
+from dcsc_torchrl.recipes.machines import PRETRAINING
 from dcsc_torchrl.shipped import greedy_return, load_shipped, shipped_machine, shipped_path
 from dcsc_torchrl.tasks import TASKS, get_task
-from recipes.shared_control import RECIPES
 
 
 def recipe_config(task_name: str, overrides: list[str] = ()):
-    module = get_task(task_name).pretrain_recipe.rsplit(".", 1)[1]
-    return load_config(RECIPES / f"{module}.yaml", list(overrides))
+    return load_config(CONFIGS[task_name].pretrain, list(overrides))
 
 
 @pytest.mark.parametrize("name", list(TASKS))
@@ -53,11 +53,9 @@ def test_run_with_the_shipped_machine_needs_seed_0_only(capsys):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(TASKS))
 def test_the_recorded_command_rederives_the_shipped_weights(name, tmp_path):
-    import importlib
 
     task = get_task(name)
-    recipe = importlib.import_module(task.pretrain_recipe)
-    recipe.train(recipe_config(name, ["seed=0", f"logger.out_dir={tmp_path}"]))
+    PRETRAINING[name](recipe_config(name, ["seed=0", f"logger.out_dir={tmp_path}"]))
     shipped = load_shipped(task)["state"]
     retrained = torch.load(tmp_path / "checkpoint.pt", weights_only=True)["state"]
     for module in task.checkpoint_modules:

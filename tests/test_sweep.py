@@ -13,16 +13,13 @@ import torch
 from dcsc_torchrl.cli import _sweep, build_parser
 from dcsc_torchrl.config import load_config
 from dcsc_torchrl.protocol import run_cell
+from dcsc_torchrl.recipes.configs import RECIPES_DIR as RECIPES
+from dcsc_torchrl.recipes.folder import TABLES, write_csv
+from dcsc_torchrl.recipes.grid import make_grid
+from dcsc_torchrl.recipes.machines import pretrained_machine
+from dcsc_torchrl.recipes.settings import cell_settings, task_config
+from dcsc_torchrl.recipes.sweep import main, run_sweep, split_overrides
 from dcsc_torchrl.tasks import get_task
-from recipes.shared_control import (
-    RECIPES,
-    cell_settings,
-    make_grid,
-    pretrained_machine,
-    task_config,
-    write_csv,
-)
-from recipes.sweep import TABLES, main, run_sweep, split_overrides
 
 PROTOCOL = ["scenarios.operator_runs=1", "scenarios.collaboration_runs=1", "scenarios.validation_scenarios=2",
             "protocol.group_size=1", "protocol.max_steps=60"]
@@ -136,9 +133,9 @@ def test_dcsc_sweep_hands_its_arguments_to_the_recipe():
 
 def test_a_sweep_with_the_shipped_machine_reads_the_shipped_file_and_pretrains_nothing(tmp_path, monkeypatch):
     """`dcsc sweep ... <task>.pretrain.shipped=true`: the cells load the file `dcsc run` would."""
+    from dcsc_torchrl.recipes.machines import machine_checkpoint
+    from dcsc_torchrl.recipes.sweep import ensure_pretrained
     from dcsc_torchrl.shipped import shipped_path
-    from recipes.shared_control import machine_checkpoint
-    from recipes.sweep import ensure_pretrained
 
     monkeypatch.chdir(tmp_path)
     task = get_task("uav")

@@ -24,7 +24,6 @@ import argparse
 import math
 import sys
 import time
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +44,7 @@ from dcsc_torchrl.humans.keyboard import KeyboardPilot, NoDisplayError
 from dcsc_torchrl.humans.operator_alone import operator_only_policy
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.protocol import ProtocolSettings
+from dcsc_torchrl.recipes.configs import CONFIGS
 from dcsc_torchrl.runlog import RunLog
 from dcsc_torchrl.tasks import get_task
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
@@ -64,21 +64,11 @@ EPISODE_COLUMNS = ["task", "operator", "pretrain_seed", "method", "phase", "grou
 _MACHINE_KEYS = ("machine_uncertainty", "machine_confidence", "confidence_ratio")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """``dcsc play``'s parser: the task, then the options of :func:`dcsc_torchrl.cli.add_play_options`."""
-    from dcsc_torchrl.cli import add_play_options
-
-    parser = argparse.ArgumentParser(prog="dcsc play", description=__doc__.split("\n\n")[0])
-    parser.add_argument("task", choices=[TASK.name])
-    return add_play_options(parser)
-
-
 def play_config() -> DictConfig:
     """The parameters of the simulated LunarLander runs (confidences, machine, arbiter, Algorithm 1)."""
-    from dcsc_torchrl.cli import recipes_dir
     from dcsc_torchrl.config import load_config
 
-    return load_config(recipes_dir() / TASK.config)
+    return load_config(CONFIGS[TASK.name].protocol)
 
 
 def load_machine(path: Path) -> tuple[nn.Module, nn.Module]:
@@ -88,7 +78,7 @@ def load_machine(path: Path) -> tuple[nn.Module, nn.Module]:
             f"no LunarLander checkpoint at {path}: run `dcsc pretrain lunarlander` first, "
             "pass --checkpoint PATH, or fly alone with --assist none"
         )
-    return machine_from_checkpoint(load_checkpoint(path, task=TASK.name, machine=True), TASK)
+    return machine_from_checkpoint(load_checkpoint(path, task=TASK.name, modules=TASK.checkpoint_modules), TASK)
 
 
 def assisting_machine(checkpoint: Path | None, cfg: DictConfig) -> tuple[nn.Module, nn.Module]:
@@ -296,13 +286,8 @@ def play(
     return summaries
 
 
-def main(argv: Sequence[str] | None = None) -> None:
-    """Entry point of ``python -m dcsc_torchrl.humans.play`` (``argv`` = ``["lunarlander", *options]``)."""
-    run_play(build_parser().parse_args(argv))
-
-
 def run_play(args: argparse.Namespace) -> None:
-    """A play session with the options of :func:`dcsc_torchrl.cli.add_play_options` (``dcsc play`` calls it)."""
+    """A play session with the options of :func:`~dcsc_torchrl.recipes.options.add_play_options` (``dcsc play``)."""
     cfg = play_config()
     confidence = HumanConfidenceTransform(**cfg.human)
     try:

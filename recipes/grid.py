@@ -1,0 +1,267 @@
+"""The grid driver: a task's cells (operator preset x pretraining seed), each run by the
+protocol (:func:`dcsc_torchrl.protocol.run_cell`) and written to its own folder, then
+gathered into the task's tables, summary and figures; the executors that run the cells
+(here one after another, or ``dcsc sweep``'s Ray tasks). docs/architecture.md."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import pandas as pd
+import torch
+from omegaconf import DictConfig
+
+from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
+from dcsc_torchrl.config import (
+    ConfigError,
+    distinct,
+    to_plain,
+    writable_folder,
+)
+from dcsc_torchrl.humans.traits import PRESETS
+from dcsc_torchrl.methods import task_methods
+from dcsc_torchrl.protocol import (
+    run_cell,
+)
+from dcsc_torchrl.recipes.folder import TABLES, folder_lock, prepare_results, write_csv
+from dcsc_torchrl.recipes.machines import pretrained_machine
+from dcsc_torchrl.recipes.settings import cell_settings, check_names, task_config
+from dcsc_torchrl.report import write_task_figures, write_task_summary
+from dcsc_torchrl.runlog import Progress, write_atomic
+from dcsc_torchrl.tasks import get_task
+
+
+def cell_grid(presets: Sequence[str], seeds: Sequence[int], main: str) -> tuple[list[tuple[int, str, bool]], str]:
+    """The protocol's cells in order, ``(pretraining seed, preset, traced)``, and the main operator.
+
+    The main operator is ``main`` when it is among ``presets`` (else the first preset); its
+    cell with the first pretraining seed is the one whose scenario 0 is traced (the paper's
+    single-human setting of the tables and figures).
+    """
+    main_operator = main if main in presets else presets[0]
+    cells = [(seed, preset, preset == main_operator and seed == seeds[0]) for seed in seeds for preset in presets]
+    return cells, main_operator
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One cell of the grid; ``trace`` records scenario 0 (main operator, first pretraining seed)."""
+
+    task: str
+    operator: str
+    pretrain_seed: int
+    trace: bool
+
+    @property
+    def name(self) -> str:
+        return f"{self.operator}-seed{self.pretrain_seed}"
+
+    def directory(self, out: Path) -> Path:
+        """The cell's own files: ``out/<task>/cells/<operator>-seed<s>/``."""
+        return out / self.task / "cells" / self.name
+
+    def done(self, out: Path) -> bool:
+        return (self.directory(out) / "cell.json").exists()
+
+
+@dataclass
+class TaskGrid:
+    """One task's protocol config and cells, in the order of :func:`cell_grid`.
+
+    ``cfg.pretrain.out_dir`` is absolute (the cells may run in other processes or nodes);
+    ``pretrain_out_dir`` is as the command gave it, what the run's record keeps.
+    """
+
+    task: str
+    cfg: DictConfig
+    cells: list[Cell]
+    main_operator: str
+    main_seed: int
+    pretrain_out_dir: str
+    quick: bool
+
+
+def make_grid(task: str, cfg: DictConfig, presets: Sequence[str], seeds: Sequence[int], *,
+              quick: bool = False) -> TaskGrid:
+    """The cells of ``task`` for ``presets`` x ``seeds`` (each once, in order); ``pretrain.out_dir``
+    made absolute, so that the cells can run in other processes or nodes."""
+    given = str(cfg.pretrain.out_dir)
+    cfg.pretrain.out_dir = str(Path(given).resolve())
+    seeds = list(dict.fromkeys(int(s) for s in seeds))
+    grid, main_operator = cell_grid(list(dict.fromkeys(presets)), seeds, cfg.operator.main)
+    cells = [Cell(task, preset, seed, trace=traced) for seed, preset, traced in grid]
+    return TaskGrid(task, cfg, cells, main_operator, seeds[0], given, quick)
+
+
+def write_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: Path, machine: torch.nn.Module,
+               critic: torch.nn.Module, info: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Runs one cell (``run_cell``) and writes its rows to its directory, ``cell.json`` last (atomic files).
+
+    Of ``methods`` the cell runs those its task defines (:func:`~dcsc_torchrl.methods.task_methods`:
+    the UAV has no ``rule``)."""
+    directory = cell.directory(out)
+    directory.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    task = get_task(cell.task)
+    methods = task_methods(task, methods)
+    result = run_cell(task, task.make_operator(cell.operator), machine, critic, operator_name=cell.operator,
+                      pretrain_seed=cell.pretrain_seed, methods=methods, trace=cell.trace, **cell_settings(cfg),
+                      progress=lambda line: print(f"  {cell.name}: {line}", file=sys.stderr, flush=True))
+    calibration = [result.calibration] if result.calibration else []
+    for name, rows in zip(TABLES, (result.episodes, result.traces, result.theta, calibration), strict=True):
+        if rows:
+            write_csv(rows, directory / f"{name}.csv")
+        else:
+            (directory / f"{name}.csv").unlink(missing_ok=True)
+    record = {"task": cell.task, "operator": cell.operator, "pretrain_seed": cell.pretrain_seed,
+              "methods": list(methods), "seconds": time.perf_counter() - start,
+              "hula_threshold": result.hula_threshold, **(info or {})}
+    write_atomic(directory / "cell.json", lambda f: f.write(json.dumps(record, indent=2)))  # last: the cell is done
+    return record
+
+
+def failed_section(failed: Sequence[dict[str, Any]]) -> str:
+    """The "Failed cells" section appended to a task's ``summary.md``."""
+    lines = ["", "## Failed cells", "",
+             f"{len(failed)} cell(s) failed after every retry (tracebacks in `cells/<cell>/error.txt`):", "",
+             "| cell | attempts | error |", "|---|---|---|"]
+    for row in failed:
+        error = row["error"].replace("|", "\\|")
+        lines.append(f"| {row['cell']} | {row['attempts']} | {error} |")
+    return "\n".join(lines) + "\n"
+
+
+def gather(out: Path, grid: TaskGrid, failed: Sequence[dict[str, Any]] = ()) -> Path:
+    """The done cells' rows into ``out/<task>/``'s CSVs, ``summary.md`` and figures; the failures reported."""
+    task_dir = out / grid.task
+    task_dir.mkdir(parents=True, exist_ok=True)
+    done = [cell for cell in grid.cells if cell.done(out)]
+    for name in TABLES:
+        paths = [path for cell in done if (path := cell.directory(out) / f"{name}.csv").exists()]
+        if paths:
+            # read as text: every value passes through exactly as its cell wrote it
+            frame = pd.concat([pd.read_csv(path, dtype=str, keep_default_na=False) for path in paths],
+                              ignore_index=True)
+            write_csv(frame.to_dict("records"), task_dir / f"{name}.csv")
+        else:
+            (task_dir / f"{name}.csv").unlink(missing_ok=True)
+    summary = task_dir / "summary.md"
+    if done:
+        write_task_summary(task_dir, get_task(grid.task), grid.main_operator, grid.main_seed, quick=grid.quick)
+        if (task_dir / "trace.csv").exists():
+            write_task_figures(task_dir, get_task(grid.task), grid.main_operator, grid.main_seed)
+    else:
+        write_atomic(summary, lambda f: f.write(f"# {grid.task}: no cell finished\n"))
+    failed_csv = task_dir / "failed_cells.csv"
+    if failed:
+        write_csv(list(failed), failed_csv)
+        text = summary.read_text() + failed_section(failed)
+        write_atomic(summary, lambda f: f.write(text))
+    else:
+        failed_csv.unlink(missing_ok=True)
+    return summary
+
+
+def run_record(grid: TaskGrid, methods: Sequence[str]) -> dict[str, Any]:
+    """What the results of ``grid`` depend on: its config (but ``threads``; ``pretrain.out_dir`` as
+    the command gave it), methods and cells; and whether it is a ``--quick`` run (for the summary)."""
+    config = to_plain(grid.cfg)
+    config.pop("threads", None)
+    config["pretrain"]["out_dir"] = grid.pretrain_out_dir
+    return {"config": config, "methods": list(methods), "cells": [cell.name for cell in grid.cells],
+            "quick": grid.quick}
+
+
+@dataclass
+class GridResult:
+    """What a run of the grid did: the cells it ran, those done before (skipped), those that failed."""
+
+    out: Path
+    ran: list[Cell]
+    skipped: list[Cell]
+    failed: list[dict[str, Any]]
+
+
+class Executor(Protocol):
+    """Runs the cells of a grid not done yet; returns those it ran and the failures (``{cell, task, ...}`` rows)."""
+
+    def __call__(self, out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], methods: tuple[str, ...], *,
+                 quick: bool) -> tuple[list[Cell], list[dict[str, Any]]]: ...
+
+
+def local_executor(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], methods: tuple[str, ...], *,
+                   quick: bool) -> tuple[list[Cell], list[dict[str, Any]]]:
+    """The cells one after another in this process, the task's outputs gathered after each
+    but its last (:func:`run_grid` gathers every task once the executor returns).
+
+    A cell that raises stops the run (its folder has no ``cell.json``: the next run redoes
+    it); ``dcsc sweep``'s Ray executor retries and reports instead.
+    """
+    by_task = {grid.task: grid for grid in grids}
+    last = {cell.task: cell for cell in cells}
+    ran: list[Cell] = []
+    with Progress(len(cells), "cells", "cell", every=0) as progress:
+        for cell in cells:
+            grid = by_task[cell.task]
+            machine, critic = pretrained_machine(get_task(cell.task), grid.cfg, cell.pretrain_seed, quick=quick)
+            write_cell(cell, grid.cfg, methods, out, machine, critic)
+            if cell is not last[cell.task]:
+                gather(out, grid)
+            ran.append(cell)
+            progress.set_postfix(last=cell.name)
+            progress.update()
+    return ran, []
+
+
+def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], executor: Executor, *,
+             quick: bool = False, fresh: bool = False) -> GridResult:
+    """The one driver of the grid: checks each task's folder can be written, locks it
+    (:func:`folder_lock`: one run at a time) and claims it (:func:`prepare_results`), runs the
+    cells not done yet with ``executor`` (:func:`local_executor`, or ``dcsc sweep``'s Ray
+    tasks), then gathers every task's outputs (:func:`gather`, the one writer), the failures
+    reported."""
+    for grid in grids:
+        writable_folder(out / grid.task)
+    with contextlib.ExitStack() as locks:
+        for grid in grids:
+            locks.enter_context(folder_lock(out / grid.task))
+        for grid in grids:
+            prepare_results(out / grid.task, run_record(grid, methods), fresh=fresh)
+        cells = [cell for grid in grids for cell in grid.cells]
+        todo = [cell for cell in cells if not cell.done(out)]
+        ran, failed = executor(out, grids, todo, methods, quick=quick) if todo else ([], [])
+        for grid in grids:
+            gather(out, grid, [row for row in failed if row["task"] == grid.task])
+    return GridResult(out, ran, [cell for cell in cells if cell not in todo], failed)
+
+
+def checked_grid(task_name: str, *, quick: bool = False, overrides: Sequence[str] = (),
+                 operators: Sequence[str] | None = None, seeds: Sequence[int] | None = None,
+                 option: str = "--operators") -> TaskGrid:
+    """The cells of ``task_name``: every operator preset (or ``operators``, given by ``option``)
+    x every pretraining seed (or ``seeds``), each once (a repeat is dropped with a warning).
+
+    The whole config (:func:`task_config`), the presets named and the checkpoints there are
+    are checked here, before any cell runs: a typo or a broken checkpoint is answered at once.
+    """
+    task = get_task(task_name)
+    cfg = task_config(task, overrides, quick=quick)
+    presets = list(cfg.operator.presets)
+    if operators:
+        presets = check_names(option, "operator preset", distinct(option, operators), list(PRESETS))
+    seeds = list(cfg.pretrain.seeds) if seeds is None else list(seeds)
+    if cfg.pretrain.shipped and seeds != [0]:
+        raise ConfigError(f"pretrain.shipped=true: only pretraining seed 0 ships, but the seeds are {seeds}: "
+                          "add pretrain.seeds=[0]")
+    for seed in seeds:
+        if not cfg.pretrain.shipped and checkpoint_path(cfg.pretrain.out_dir, seed).exists():
+            # a broken or outdated one: refused now
+            load_checkpoint(checkpoint_path(cfg.pretrain.out_dir, seed), task=task.name, modules=task.checkpoint_modules)
+    return make_grid(task.name, cfg, presets, seeds, quick=quick)

@@ -1,0 +1,70 @@
+"""Where a cell's machine comes from: the checkpoint of its pretraining seed, pretrained (or
+resumed) first when missing, or the machine shipped with the package; and the table of the
+recipe that pretrains each task's machine."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+
+from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
+from dcsc_torchrl.networks import machine_from_checkpoint
+from dcsc_torchrl.recipes.settings import pretrain_config
+from dcsc_torchrl.tasks import Task
+
+
+def _train_a2c(cfg: DictConfig, *, resume: bool = False) -> Path:
+    from dcsc_torchrl.recipes.pretrain_a2c_lunarlander import train
+
+    return train(cfg, resume=resume)
+
+
+def _train_ddpg(cfg: DictConfig, *, resume: bool = False) -> Path:
+    from dcsc_torchrl.recipes.pretrain_ddpg_uav import train
+
+    return train(cfg, resume=resume)
+
+
+PRETRAINING: dict[str, Callable[..., Path]] = {"lunarlander": _train_a2c, "uav": _train_ddpg}
+"""The recipe that pretrains each task's machine, ``train(cfg, *, resume=False) -> run folder``
+(imported on its first call: the recipes load torch and TorchRL)."""
+
+
+def machine_checkpoint(task: Task, cfg: DictConfig, seed: int) -> Path:
+    """Where pretraining seed ``seed``'s machine is read: ``{pretrain.out_dir}/seed{seed}/checkpoint.pt``,
+    or with ``pretrain.shipped`` the file shipped with the package (seed 0's)."""
+    if cfg.pretrain.shipped:
+        from dcsc_torchrl.shipped import shipped_path
+
+        return shipped_path(task)
+    return checkpoint_path(cfg.pretrain.out_dir, seed)
+
+
+def pretrained_machine(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -> tuple[torch.nn.Module, torch.nn.Module]:
+    """The machine actor and critic of pretraining seed ``seed``; pretrained first when missing
+    (by the task's recipe with the ``pretrain.recipe`` settings: e.g. a converged machine).
+
+    With ``pretrain.shipped`` the machine shipped with the package (seed 0) instead.
+
+    A checkpoint short of its episodes that its run did not finish (a pretraining killed
+    halfway) is resumed to the end first; one the run finished early (its landing check
+    stopped it, or ``train.keep_best`` kept an earlier machine) is loaded as it is.
+    """
+    path = machine_checkpoint(task, cfg, seed)
+    if cfg.pretrain.shipped:
+        return machine_from_checkpoint(load_checkpoint(path, task=task.name, modules=task.checkpoint_modules), task)
+    train = PRETRAINING[task.name]
+    if not path.exists():
+        print(f"{task.name}: no checkpoint at {path}, pretraining seed {seed} first", file=sys.stderr, flush=True)
+        train(pretrain_config(task, cfg, seed, quick=quick))
+    data = load_checkpoint(path, task=task.name, modules=task.checkpoint_modules)
+    budget = data["config"].get("train", {}).get("episodes")  # a weights-only file has none
+    if budget is not None and not data.get("finished", False) and data.get("episodes", budget) < budget:
+        print(f"{task.name}: {path} stopped at episode {data['episodes']}, resuming", file=sys.stderr, flush=True)
+        train(pretrain_config(task, cfg, seed, quick=quick), resume=True)
+        data = load_checkpoint(path, task=task.name, modules=task.checkpoint_modules)
+    return machine_from_checkpoint(data, task)
