@@ -6,7 +6,7 @@ machine's share of authority in Eq. 14), so every method of the paper is the sam
 pipeline with a different arbiter.
 
 Every frame is checked where it enters, at one reduction per tensor and no device sync
-(:func:`~dcsc_torchrl.confidence.check_values`): the two confidences in [0, 1], theta
+(:func:`~dcsc_torchrl.checks.check_values`): the two confidences in [0, 1], theta
 finite, the beta an arbiter gives in [0, 1] (a custom arbiter's too).
 
 An arbiter's whole state (theta, and the gain, threshold, value or frozen confidences
@@ -30,7 +30,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 
-from dcsc_torchrl.confidence import check_in_range, check_values
+from dcsc_torchrl.checks import check_in_range, check_values
 
 _EXTRA_STATE = "_extra_state"
 

@@ -20,7 +20,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from dcsc_torchrl.confidence import flush_frame_checks
+from dcsc_torchrl.checks import flush_frame_checks
 from dcsc_torchrl.task import Task
 
 FRAME_KEYS = ("observation", "action", "machine_probs", "machine_action", "machine_uncertainty",

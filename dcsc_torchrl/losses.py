@@ -1,7 +1,7 @@
 """Losses of Algorithm 1: the Q critic's TD loss and the theta update of Eq. 19 (discrete).
 
 Each loss's forward first reads the verdicts of the frame checks still pending on a device
-(:func:`~dcsc_torchrl.confidence.flush_frame_checks`, one sync per batch): a batch holding
+(:func:`~dcsc_torchrl.checks.flush_frame_checks`, one sync per batch): a batch holding
 a bad frame is refused before anything learns from it. The critics run with their
 parameters through :func:`call_with_params`, which survives a Ctrl-C.
 """
@@ -18,7 +18,7 @@ from torch.func import functional_call
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import distance_loss
 
-from dcsc_torchrl.confidence import check_in_range, check_values, flush_frame_checks
+from dcsc_torchrl.checks import check_in_range, check_values, flush_frame_checks
 from dcsc_torchrl.policy import SharedPolicyModule, check_distribution
 
 

@@ -12,13 +12,8 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torch.nn.parameter import is_lazy
 
-from dcsc_torchrl.confidence import (
-    check_finite,
-    check_in_range,
-    check_values,
-    machine_confidence,
-    mc_dropout_uncertainty,
-)
+from dcsc_torchrl.checks import check_finite, check_in_range, check_values
+from dcsc_torchrl.confidence import machine_confidence, mc_dropout_uncertainty
 from dcsc_torchrl.networks import FirstDims
 
 _DROPOUT_TYPES = (nn.Dropout, nn.Dropout1d, nn.Dropout2d, nn.Dropout3d, nn.AlphaDropout)
@@ -90,7 +85,7 @@ class MCDropoutPolicy(TensorDictModuleBase):
     eval mode, whatever ``.train()`` is called on this module.
 
     Every frame is checked where it enters, at one reduction per tensor and no device sync
-    (:func:`~dcsc_torchrl.confidence.check_values`): the observation's width (a shape
+    (:func:`~dcsc_torchrl.checks.check_values`): the observation's width (a shape
     comparison) and dtype (the network's), its values finite, and the network's M samples
     finite (NaN weights show there).
 
@@ -196,7 +191,7 @@ class MCDropoutPolicy(TensorDictModuleBase):
         Raises:
             ValueError: for an observation of the wrong width or dtype, or with NaN / inf
                 values (on a device: a few frames later, see
-                :func:`~dcsc_torchrl.confidence.check_values`).
+                :func:`~dcsc_torchrl.checks.check_values`).
         """
         key = self.in_keys[0]
         width = inputs[0].shape[-1] if inputs[0].dim() else 1

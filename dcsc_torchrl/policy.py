@@ -17,7 +17,7 @@ from torchrl.data import Bounded, Composite, OneHot, TensorSpec
 from torchrl.modules import OneHotCategorical
 
 from dcsc_torchrl.arbiters import Arbiter
-from dcsc_torchrl.confidence import check_values
+from dcsc_torchrl.checks import check_values
 from dcsc_torchrl.machine import MCDropoutPolicy
 
 
@@ -35,7 +35,7 @@ class PolicyBlend(nn.Module):
     ``[low, high]`` when given (Eq. 14 on a bounded action: an operator's action outside
     the box is clipped with the blend, as the env would; a NaN is refused, never clipped).
     The checks are one reduction per tensor and no device sync
-    (:func:`~dcsc_torchrl.confidence.check_values`); the shapes are compared for free.
+    (:func:`~dcsc_torchrl.checks.check_values`); the shapes are compared for free.
 
     Args:
         low: the box's lower corner (continuous), or ``None``.
@@ -84,7 +84,7 @@ class PolicyBlend(nn.Module):
 def check_distribution(name: str, values: torch.Tensor) -> torch.Tensor:
     """Checks that every frame of ``values`` ``[*batch, n]`` is a distribution: in [0, 1], summing to 1.
 
-    Two reductions, no device sync (:func:`~dcsc_torchrl.confidence.check_values`); a float
+    Two reductions, no device sync (:func:`~dcsc_torchrl.checks.check_values`); a float
     sum may miss 1 by the square root of the dtype's epsilon (3.5e-4 in float32: a mean of
     softmaxes' rounding, far below any mass gained or lost).
 

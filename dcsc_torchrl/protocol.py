@@ -315,6 +315,97 @@ class _Cell:
     def traced(self, phase: str, method: str, seeds: Sequence[int], result: EpisodeBatch) -> list[dict[str, Any]]:
         return [{**self.base, "method": method, "phase": phase, "seed": seeds[0], **r} for r in result.trace]
 
+    # -- the three phases of run_cell ---------------------------------------------------
+    def calibrate(self, scenarios: Scenarios, critic_net: torch.nn.Module,
+                  warmup: WarmupSettings) -> tuple[list[dict[str, Any]], torch.nn.Module, dict[str, Any]]:
+        """Phase 1: everything the other phases need, known before any row is written.
+
+        Returns the phase's rows, the critic warmed up on both partners' transitions, and
+        the cell's calibration record."""
+        protocol, machine = self.protocol, self.machine
+        alone = self.play("operator_alone", "operator", scenarios.operator_alone, self.policy("operator"))
+        if self.hula_threshold is None:
+            self.hula_threshold = float(torch.quantile(alone.uncertainty.double(), 0.9))
+        if protocol.calibrate_machine:
+            self.uncertainty_scale = calibrated_uncertainty_scale(alone.uncertainty, machine.lam, machine.delta2)
+        episodes = self.rows("operator_alone", "operator", scenarios.operator_alone, alone)
+        warm_frames = alone.frames
+        if len(scenarios.machine_alone):
+            machine_alone = self.play("machine_alone", "machine", scenarios.machine_alone, self.policy("machine"))
+            episodes += self.rows("machine_alone", "machine", scenarios.machine_alone, machine_alone)
+            warm_frames = concat_runs(warm_frames, machine_alone.frames)
+        for beta in warmup.blend_betas if len(scenarios.blend) else ():
+            blend = self.play("calibration_blend", f"constant/{beta}", scenarios.blend,
+                              self.policy("constant", constant_beta=beta))
+            episodes += self.rows("calibration_blend", "constant", scenarios.blend, blend, constant_beta=float(beta))
+            warm_frames = concat_runs(warm_frames, blend.frames)
+        if self.online.get("theta_critic") == "authority":  # a fresh Q(s, beta), fitted on the partners' returns
+            torch.manual_seed(run_seed(protocol.seed, self.pretrain_seed, "operator_alone", "authority_critic"))
+            critic_net = authority_critic(self.observation_size, self.task.action_dims)
+        warm = make_online_learner(self.policy("dcsc"), copy.deepcopy(critic_net), **{**self.online, "theta_lr": 0.0})
+        warm.warm_up(warm_frames, target=warmup.target, updates=warmup.updates, batch_size=warmup.batch_size,
+                     lr=warmup.lr, seed=run_seed(protocol.seed, self.pretrain_seed, "operator_alone", "critic"))
+        calibration = {**self.base, "hula_threshold": self.hula_threshold,
+                       **confidence_signal(self.uncertainty_scale, alone.frames, warm.action_gap(alone.frames),
+                                           machine.lam, machine.delta2)}
+        return episodes, warm.critic, calibration
+
+    def learner(self, policy: SharedPolicyModule, critic: torch.nn.Module) -> OnlineLearner:
+        """Algorithm 1's online learner of ``policy`` with its own copy of ``critic``."""
+        return make_online_learner(policy, copy.deepcopy(critic), **self.online)
+
+    def collaborate(self, seeds: Sequence[int], critic: torch.nn.Module, methods: Sequence[str],
+                    ) -> tuple[list[dict[str, Any]], dict[str, OnlineLearner], dict[str, int]]:
+        """Phase 2: each learned arbiter with its own theta and critic, learning online; then
+        ``dcsc_frozen`` (if validated) from the ``arbiter.form`` arbiter, its confidences frozen
+        at their collaboration means. Returns the rows, the learners and each one's update count."""
+        frozen_source = learned_method(self.arbiter.form)
+        needed = {m for m in methods if METHODS[m].kind == "learned"} | (
+            {frozen_source} if "dcsc_frozen" in methods else set())
+        episodes: list[dict[str, Any]] = []
+        learners: dict[str, OnlineLearner] = {}
+        means: dict[str, tuple[float, float]] = {}
+        for method in sorted(needed, key=METHOD_NAMES.index):
+            learners[method] = self.learner(self.policy(method), critic)
+            result = self.play("collaboration", method, seeds, learners[method].policy, update=learners[method])
+            episodes += self.rows("collaboration", method, seeds, result)
+            means[method] = (result.frames["machine_confidence"].mean().item(),
+                             result.frames["human_confidence"].mean().item())
+        updates = {method: len(learner.history) for method, learner in learners.items()}
+        if "dcsc_frozen" in methods:
+            frozen = FrozenConfidenceArbiter(copy.deepcopy(learners[frozen_source].policy["arbiter"]),
+                                             *means[frozen_source])
+            learners["dcsc_frozen"] = self.learner(self.policy("dcsc_frozen", frozen), critic)
+            learners["dcsc_frozen"].critic.load_state_dict(learners[frozen_source].critic.state_dict())
+        return episodes, learners, updates
+
+    def validate(self, seeds: Sequence[int], methods: Sequence[str], learners: Mapping[str, OnlineLearner], *,
+                 trace: bool) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        """Phase 3: every method on the validation scenarios (the learned ones still learning).
+        Returns the rows and, with ``trace``, every frame of scenario 0 of each method."""
+        episodes: list[dict[str, Any]] = []
+        traces: list[dict[str, Any]] = []
+        operator_alone: EpisodeBatch | None = None  # the operator's validation run, once played
+        for method in methods:
+            if METHODS[method].kind == "sweep":
+                for beta in self.arbiter.constant_betas:
+                    if operator_alone is not None and plays_operator_alone(
+                            beta, discrete=self.task.discrete, mode=self.protocol.shared_action == "mode"):
+                        result = self.reuse_operator_run(operator_alone, f"constant/{beta}", beta)
+                    else:
+                        result = self.play("validation", f"constant/{beta}", seeds,
+                                           self.policy("constant", constant_beta=beta))
+                    episodes += self.rows("validation", "constant", seeds, result, constant_beta=float(beta))
+                continue
+            learner = learners.get(method)
+            policy = self.policy(method) if learner is None else learner.policy
+            result = self.play("validation", method, seeds, policy, update=learner, trace=trace)
+            if method == "operator":
+                operator_alone = result
+            episodes += self.rows("validation", method, seeds, result)
+            traces += self.traced("validation", method, seeds, result)
+        return episodes, traces
+
 
 def run_cell(
     task: Task,
@@ -383,81 +474,10 @@ def run_cell(
     base = {"task": task.name, "operator": operator_name, "pretrain_seed": pretrain_seed}
     cell = _Cell(task, operator, machine_net, base=base, pretrain_seed=pretrain_seed, human=human, machine=machine,
                  arbiter=arbiter, online=online, protocol=protocol, progress=progress)
-
-    # 1. calibrate: everything the other phases need is known before any row is written
-    alone = cell.play("operator_alone", "operator", scenarios.operator_alone, cell.policy("operator"))
-    if cell.hula_threshold is None:
-        cell.hula_threshold = float(torch.quantile(alone.uncertainty.double(), 0.9))
-    if protocol.calibrate_machine:
-        cell.uncertainty_scale = calibrated_uncertainty_scale(alone.uncertainty, machine.lam, machine.delta2)
-    episodes = cell.rows("operator_alone", "operator", scenarios.operator_alone, alone)
-    warm_frames = alone.frames
-    if len(scenarios.machine_alone):
-        machine_alone = cell.play("machine_alone", "machine", scenarios.machine_alone, cell.policy("machine"))
-        episodes += cell.rows("machine_alone", "machine", scenarios.machine_alone, machine_alone)
-        warm_frames = concat_runs(warm_frames, machine_alone.frames)
-    for beta in warmup.blend_betas if len(scenarios.blend) else ():
-        blend = cell.play("calibration_blend", f"constant/{beta}", scenarios.blend,
-                          cell.policy("constant", constant_beta=beta))
-        episodes += cell.rows("calibration_blend", "constant", scenarios.blend, blend, constant_beta=float(beta))
-        warm_frames = concat_runs(warm_frames, blend.frames)
-    if online.get("theta_critic") == "authority":  # a fresh Q(s, beta), fitted on the two partners' returns
-        torch.manual_seed(run_seed(protocol.seed, pretrain_seed, "operator_alone", "authority_critic"))
-        critic_net = authority_critic(cell.observation_size, task.action_dims)
-    warm = make_online_learner(cell.policy("dcsc"), copy.deepcopy(critic_net), **{**online, "theta_lr": 0.0})
-    warm.warm_up(warm_frames, target=warmup.target, updates=warmup.updates, batch_size=warmup.batch_size,
-                 lr=warmup.lr, seed=run_seed(protocol.seed, pretrain_seed, "operator_alone", "critic"))
-    calibration = {**base, "hula_threshold": cell.hula_threshold,
-                   **confidence_signal(cell.uncertainty_scale, alone.frames, warm.action_gap(alone.frames),
-                                       machine.lam, machine.delta2)}
-
-    def learner_for(policy: SharedPolicyModule) -> OnlineLearner:
-        return make_online_learner(policy, copy.deepcopy(warm.critic), **online)
-
-    # 2. collaborate: each learned arbiter with its own theta and critic
-    frozen_source = learned_method(arbiter.form)
-    needed = {m for m in methods if METHODS[m].kind == "learned"} | ({frozen_source} if "dcsc_frozen" in methods
-                                                                      else set())
-    learners: dict[str, OnlineLearner] = {}
-    means: dict[str, tuple[float, float]] = {}
-    for method in sorted(needed, key=METHOD_NAMES.index):
-        learners[method] = learner_for(cell.policy(method))
-        result = cell.play("collaboration", method, scenarios.collaboration, learners[method].policy,
-                           update=learners[method])
-        episodes += cell.rows("collaboration", method, scenarios.collaboration, result)
-        means[method] = (result.frames["machine_confidence"].mean().item(),
-                         result.frames["human_confidence"].mean().item())
-    collaboration_updates = {method: len(learner.history) for method, learner in learners.items()}
-    if "dcsc_frozen" in methods:
-        frozen = FrozenConfidenceArbiter(copy.deepcopy(learners[frozen_source].policy["arbiter"]),
-                                         *means[frozen_source])
-        learners["dcsc_frozen"] = learner_for(cell.policy("dcsc_frozen", frozen))
-        learners["dcsc_frozen"].critic.load_state_dict(learners[frozen_source].critic.state_dict())
-
-    # 3. validate every method
-    traces: list[dict[str, Any]] = []
-    validation = scenarios.validation
-    operator_alone: EpisodeBatch | None = None  # the operator's validation run, once played
-    for method in methods:
-        kind = METHODS[method].kind
-        if kind == "sweep":
-            for beta in arbiter.constant_betas:
-                if operator_alone is not None and plays_operator_alone(
-                        beta, discrete=task.discrete, mode=protocol.shared_action == "mode"):
-                    result = cell.reuse_operator_run(operator_alone, f"constant/{beta}", beta)
-                else:
-                    result = cell.play("validation", f"constant/{beta}", validation,
-                                       cell.policy("constant", constant_beta=beta))
-                episodes += cell.rows("validation", "constant", validation, result, constant_beta=float(beta))
-            continue
-        learner = learners.get(method)
-        policy = cell.policy(method) if learner is None else learner.policy
-        result = cell.play("validation", method, validation, policy, update=learner, trace=trace)
-        if method == "operator":
-            operator_alone = result
-        episodes += cell.rows("validation", method, validation, result)
-        traces += cell.traced("validation", method, validation, result)
+    episodes, critic, calibration = cell.calibrate(scenarios, critic_net, warmup)
+    collaboration, learners, collaboration_updates = cell.collaborate(scenarios.collaboration, critic, methods)
+    validation, traces = cell.validate(scenarios.validation, methods, learners, trace=trace)
     theta = [{**base, "method": method,
               "phase": "collaboration" if h["update"] <= collaboration_updates.get(method, 0) else "validation", **h}
              for method, learner in learners.items() for h in learner.history]
-    return CellResult(episodes, traces, theta, cell.hula_threshold, calibration)
+    return CellResult(episodes + collaboration + validation, traces, theta, cell.hula_threshold, calibration)

@@ -21,13 +21,8 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, OneHot, Unbounded
 from torchrl.envs.transforms import Transform
 
-from dcsc_torchrl.confidence import (
-    check_in_range,
-    check_values,
-    defer_check,
-    human_confidence,
-    knowledge_update,
-)
+from dcsc_torchrl.checks import check_in_range, check_values, defer_check
+from dcsc_torchrl.confidence import human_confidence, knowledge_update
 
 
 @runtime_checkable
@@ -81,7 +76,7 @@ class HumanOperatorTransform(Transform):
 
     This is where the env's frame and the operator's answer enter, so they are checked
     here, on every frame, at one reduction per tensor and no device sync
-    (:func:`~dcsc_torchrl.confidence.check_values`): the observation the operator is shown
+    (:func:`~dcsc_torchrl.checks.check_values`): the observation the operator is shown
     must be finite (so a NaN from the env is named as such, not as a NaN RT),
     ``human_action`` must have the action spec's shape, be finite (a NaN is never cast to
     an integer) and, for a ``OneHot`` spec, be one-hot; ``human_rt`` finite and ``>= 0``;

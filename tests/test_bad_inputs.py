@@ -5,7 +5,7 @@ Each row: an id, a callable that feeds the bad input, the exception type, and a 
 message must match. The operator's answers and the env's frames are checked at the
 transform that receives them; specs and sizes at construction; the confidences, theta, beta
 and the machine's observation and output on every frame of the per-frame modules (one
-reduction per tensor, no device sync: ``dcsc_torchrl.confidence.check_values``).
+reduction per tensor, no device sync: ``dcsc_torchrl.checks.check_values``).
 """
 
 from __future__ import annotations
@@ -36,7 +36,8 @@ from dcsc_torchrl.arbiters import (
 )
 from dcsc_torchrl.batched_envs import LUNAR_ID
 from dcsc_torchrl.checkpoint import CheckpointError, save_checkpoint
-from dcsc_torchrl.confidence import flush_frame_checks, human_confidence, machine_confidence
+from dcsc_torchrl.checks import flush_frame_checks
+from dcsc_torchrl.confidence import human_confidence, machine_confidence
 from dcsc_torchrl.humans.keyboard import KeyboardPilot
 from dcsc_torchrl.losses import QCriticLoss, ThetaLoss
 from dcsc_torchrl.machine import MCDropoutPolicy

@@ -12,7 +12,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dcsc_torchrl import confidence
+from dcsc_torchrl import quadrature
 from dcsc_torchrl.confidence import (
     check_finite,
     check_in_range,
@@ -21,6 +21,7 @@ from dcsc_torchrl.confidence import (
     machine_confidence,
     mc_dropout_uncertainty,
 )
+from dcsc_torchrl.quadrature import STEEP_DELTA
 
 mp.mp.dps = 30
 
@@ -248,7 +249,7 @@ def test_confidences_over_the_whole_float64_range(monkeypatch):
         assert torch.isfinite(b).all() and (b >= 0).all() and (b <= 1).all()
     assert (torch.diff(b_m) <= 0).all()
     # a batch spanning a range too wide for one kernel table is split by range: same values
-    monkeypatch.setattr(confidence, "_MAX_TABLE", 5_000)
+    monkeypatch.setattr(quadrature, "_MAX_TABLE", 5_000)
     torch.testing.assert_close(
         machine_confidence(c, **_machine(PAPER_UAV)), b_m, rtol=0, atol=1e-15
     )
@@ -281,8 +282,8 @@ def test_machine_confidence_accurate_for_very_steep_cost_split_rule(delta2):
 
 def test_split_rule_continues_the_lattice_at_the_switch():
     c = log_grid(30, 1e-6, 1e3)
-    below = machine_confidence(c, 0.6, confidence._STEEP_DELTA)
-    above = machine_confidence(c, 0.6, confidence._STEEP_DELTA + 1e-9)
+    below = machine_confidence(c, 0.6, STEEP_DELTA)
+    above = machine_confidence(c, 0.6, STEEP_DELTA + 1e-9)
     assert (below - above).abs().max() < 1e-8
 
 
@@ -305,7 +306,7 @@ def test_full_range_table_of_devices_gives_the_host_values(monkeypatch, dtype):
     c = c[torch.isfinite(c)]
     host = [human_confidence(c, 0.1, 5e-324, 2.0), machine_confidence(c, 0.6, 1.05), machine_confidence(c, 0.6, 2.5),
             human_confidence(c, 0.1, 1 - 1e-16, 2.0)]
-    monkeypatch.setattr(confidence, "_sync_free", lambda device: True)
+    monkeypatch.setattr(quadrature, "_sync_free", lambda device: True)
     device = [human_confidence(c, 0.1, 5e-324, 2.0), machine_confidence(c, 0.6, 1.05), machine_confidence(c, 0.6, 2.5),
               human_confidence(c, 0.1, 1 - 1e-16, 2.0)]
     for a, b in zip(host, device, strict=True):

@@ -32,7 +32,7 @@ from dcsc_torchrl.arbiters import (
 )
 from dcsc_torchrl.batched_envs import LUNAR_ID
 from dcsc_torchrl.checkpoint import CheckpointError
-from dcsc_torchrl.confidence import _DeferredChecks, check_values
+from dcsc_torchrl.checks import _DeferredChecks, check_values
 from dcsc_torchrl.config import UsageError
 from dcsc_torchrl.losses import AuthorityThetaLoss, QCriticLoss, ThetaLoss
 from dcsc_torchrl.machine import MCDropoutPolicy

@@ -25,7 +25,7 @@ import torch
 from gymnasium.envs.box2d.lunar_lander import FPS, VIEWPORT_H, VIEWPORT_W
 from tensordict import TensorDict, TensorDictBase
 
-from dcsc_torchrl.confidence import check_in_range
+from dcsc_torchrl.checks import check_in_range
 
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 import pygame  # noqa: E402  (after the prompt is silenced)
