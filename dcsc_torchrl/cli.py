@@ -4,6 +4,7 @@
     dcsc run {lunarlander,uav} [--quick] [--out DIR] [--methods M ...] [--operators P ...] [--fresh] [key=value ...]
     dcsc sweep [--quick] [--out DIR] [--address ADDR] [--fresh] [key=value ...]
     dcsc reproduce [--quick] [--out DIR] [--fresh] [key=value ...]
+    dcsc map [--quick] [--out DIR] [--fresh] [--workers N] [key=value ...]
     dcsc report [--out DIR]
     dcsc play lunarlander [--assist {dcsc,none}] [--checkpoint PATH] [--episodes N] [--seed S] [--out DIR]
     dcsc ship {lunarlander,uav} CHECKPOINT
@@ -25,11 +26,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from dcsc_torchrl.recipes.configs import CONFIGS, SWEEP_CONFIG
+from dcsc_torchrl.recipes.configs import CONFIGS, MAP_CONFIG, SWEEP_CONFIG
 from dcsc_torchrl.recipes.options import (
     RUN_EPILOG,
     Parser,
     add_common_options,
+    add_map_options,
     add_play_options,
     add_recipe_options,
     add_report_options,
@@ -102,6 +104,17 @@ def _sweep(args: argparse.Namespace) -> Any:
     return sweep(args)
 
 
+def _map(args: argparse.Namespace) -> Path:
+    from dcsc_torchrl.config import load_config
+
+    load_config(MAP_CONFIG, args.overrides, quick=args.quick, quiet=True)  # before torch loads
+    from dcsc_torchrl.recipes.map import run_map
+
+    path = run_map(args.out, quick=args.quick, overrides=args.overrides, fresh=args.fresh, workers=args.workers)
+    _say(f"map in {path}")
+    return path
+
+
 def _play(args: argparse.Namespace) -> None:
     from dcsc_torchrl.config import UsageError
     from dcsc_torchrl.recipes.play import run_play
@@ -127,6 +140,8 @@ COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], Any], Callabl
     "run": ("the shared-control protocol of one task, every cell, resumable", add_run_options, _run),
     "sweep": ("the protocol's grid of cells as Ray tasks, here or on a cluster", add_sweep_options, _sweep),
     "reproduce": ("pretrain, run both experiments, write the report", add_reproduce_options, _reproduce),
+    "map": ("where sharing pays: the protocol over operators x machines, against the better partner",
+            add_map_options, _map),
     "report": ("redraw summaries and figures from <results>/<task>/*.csv", add_report_options, _report),
     "play": ("fly TargetLunarLander yourself, alone or with DC-SC", add_play_options, _play),
     "ship": ("export a pretraining checkpoint as the machine shipped with the package", add_ship_options, _ship),

@@ -15,6 +15,28 @@ if TYPE_CHECKING:
 LUNAR_OBS_DIMS = 9
 """TargetLunarLander's observation: the 8 standard LunarLander values and the pad's x."""
 
+LUNAR_MACHINE_VIEWS: dict[str, int] = {"blind": 8, "target": LUNAR_OBS_DIMS}
+"""What TargetLunarLander's machine observes (``network.observes``), as the number of leading
+observation values its actor and A2C's V critic read: ``target``, all 9, the pad's x included
+(the paper's state ``s_t``, §6.1); ``blind``, the 8 standard values (the peers' goal-masked
+copilot, which sees the pilot's action instead: docs/envs.md)."""
+
+
+def lunar_machine_dims(observes: str) -> int:
+    """How many observation values a TargetLunarLander machine that ``observes`` reads (:data:`LUNAR_MACHINE_VIEWS`).
+
+    Examples:
+        >>> lunar_machine_dims("target"), lunar_machine_dims("blind")
+        (9, 8)
+        >>> lunar_machine_dims("pad")
+        Traceback (most recent call last):
+        ...
+        ValueError: network.observes: expected one of blind, target, got 'pad'
+    """
+    if observes not in LUNAR_MACHINE_VIEWS:
+        raise ValueError(f"network.observes: expected one of {', '.join(LUNAR_MACHINE_VIEWS)}, got {observes!r}")
+    return LUNAR_MACHINE_VIEWS[observes]
+
 
 class FirstDims(nn.Module):
     """Keeps the first ``n`` of the ``in_dims`` entries of the last dim (the machine's view of the state).

@@ -339,7 +339,8 @@ def _calibration_section(results_dir: Path) -> list[str]:
     return lines
 
 
-def _save(fig: plt.Figure, path: Path, *, tight: bool = True) -> Path:
+def save_figure(fig: plt.Figure, path: Path, *, tight: bool = True) -> Path:
+    """Writes ``fig`` to ``path`` as a PNG, atomically, and closes it."""
     if tight:
         fig.tight_layout()
     write_atomic(path, lambda f: fig.savefig(f, dpi=110, format="png"), binary=True)
@@ -368,7 +369,7 @@ def plot_performance(frame: pd.DataFrame, task: Task, path: Path, title: str) ->
         ax.grid(axis="y", alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(title)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_confidence(trace: pd.DataFrame, task: Task, path: Path, title: str, method: str = "dcsc_centred") -> Path:
@@ -392,7 +393,7 @@ def plot_confidence(trace: pd.DataFrame, task: Task, path: Path, title: str, met
     bottom.legend()
     bottom.grid(alpha=0.3)
     fig.suptitle(f"{title}, {method_label(task, method)}")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_constant_sweep(episodes: pd.DataFrame, task: Task, path: Path, title: str) -> Path:
@@ -415,7 +416,7 @@ def plot_constant_sweep(episodes: pd.DataFrame, task: Task, path: Path, title: s
     axes[0][0].set_ylabel("success rate")
     axes[0][-1].legend(fontsize=8)
     fig.suptitle(title)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_theta(theta: pd.DataFrame, path: Path, title: str) -> Path:
@@ -438,7 +439,7 @@ def plot_theta(theta: pd.DataFrame, path: Path, title: str) -> Path:
         ax.grid(alpha=0.3)
     axes[0][-1].legend(fontsize=6, ncol=2)
     fig.suptitle(title)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_authority(trace: pd.DataFrame, task: Task, path: Path, title: str) -> Path:
@@ -464,7 +465,7 @@ def plot_authority(trace: pd.DataFrame, task: Task, path: Path, title: str) -> P
             ax.legend(fontsize=8)
     axes[-1].set_xlabel("step")
     fig.suptitle(title)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_reward_over_time(trace: pd.DataFrame, task: Task, path: Path, title: str) -> Path:
@@ -478,7 +479,7 @@ def plot_reward_over_time(trace: pd.DataFrame, task: Task, path: Path, title: st
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_uav_trajectories(trace: pd.DataFrame, scenario_seed: int, path: Path, title: str,
@@ -506,7 +507,7 @@ def plot_uav_trajectories(trace: pd.DataFrame, scenario_seed: int, path: Path, t
             ax.plot(points[:, 0], points[:, 1], points[:, 2], color=color, ls=style, lw=1.8,
                     label=label(method))
     ax.legend(fontsize=8)
-    return _save(fig, path, tight=False)
+    return save_figure(fig, path, tight=False)
 
 
 def write_task_figures(results_dir: str | os.PathLike, task: Task, main_operator: str, main_seed: int) -> list[Path]:

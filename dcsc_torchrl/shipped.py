@@ -28,9 +28,11 @@ GREEDY_SEED = 12_345
 """The seed of the recorded greedy episode (standard pad / UAV scenario), apart from every protocol range."""
 
 
-def shipped_path(task: Task) -> Path:
-    """Where ``task``'s shipped machine lies."""
-    return SHIPPED_DIR / f"{task.name}_seed{SHIPPED_SEED}.pt"
+def shipped_path(task: Task, observes: str | None = None) -> Path:
+    """Where ``task``'s shipped machine lies; for LunarLander, the one that ``observes`` (``blind``
+    when ``None``: the goal-blind machine, ``<task>_seed0.pt``; ``target``: ``<task>_target_seed0.pt``)."""
+    view = "" if observes in (None, "blind") else f"_{observes}"
+    return SHIPPED_DIR / f"{task.name}{view}_seed{SHIPPED_SEED}.pt"
 
 
 def greedy_return(task: Task, actor: torch.nn.Module) -> float:
@@ -61,6 +63,8 @@ def export_machine(task: Task, checkpoint: str | Path, out: str | Path | None = 
     """Writes the actor and critic of a pretraining ``checkpoint`` as ``task``'s shipped machine."""
     data = load_checkpoint(checkpoint, task=task.name)
     actor, _ = machine_from_checkpoint(data, task)
+    observes = data["config"]["network"].get("observes")
+    view = f" network.observes={observes} env.random_pad={str(observes == 'target').lower()}" if observes else ""
     names = task.checkpoint_modules
     payload: dict[str, Any] = {
         "state": {name: data["state"][name] for name in names},
@@ -68,16 +72,16 @@ def export_machine(task: Task, checkpoint: str | Path, out: str | Path | None = 
         "episodes": data["episodes"],
         "frames": data["frames"],
         "greedy_return": greedy_return(task, actor),
-        "command": f"dcsc pretrain {task.name} seed={data['config']['seed']}",
+        "command": f"dcsc pretrain {task.name} seed={data['config']['seed']}{view}",
     }
-    return save_checkpoint(out or shipped_path(task), task=task.name, payload=payload)
+    return save_checkpoint(out or shipped_path(task, observes), task=task.name, payload=payload)
 
 
-def load_shipped(task: Task) -> dict[str, Any]:
-    """The shipped file of ``task``, as :func:`load_checkpoint` reads it."""
-    return load_checkpoint(shipped_path(task), task=task.name)
+def load_shipped(task: Task, observes: str | None = None) -> dict[str, Any]:
+    """The shipped file of ``task`` (that ``observes``: :func:`shipped_path`), as :func:`load_checkpoint` reads it."""
+    return load_checkpoint(shipped_path(task, observes), task=task.name)
 
 
-def shipped_machine(task: Task) -> tuple[torch.nn.Module, torch.nn.Module]:
-    """``task``'s shipped actor and critic, in the recipe's networks, in eval mode."""
-    return machine_from_checkpoint(load_shipped(task), task)
+def shipped_machine(task: Task, observes: str | None = None) -> tuple[torch.nn.Module, torch.nn.Module]:
+    """``task``'s shipped actor and critic (that ``observes``), in the recipe's networks, in eval mode."""
+    return machine_from_checkpoint(load_shipped(task, observes), task)

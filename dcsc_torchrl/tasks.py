@@ -88,9 +88,16 @@ def _uav_operator(preset: str) -> HumanOperator:
 
 
 def _lunar_networks(network: Mapping[str, Any]) -> tuple[nn.Module, nn.Module]:
-    from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic
+    from dcsc_torchrl.networks import (
+        LUNAR_QVALUE_DIMS,
+        lunar_actor,
+        lunar_critic,
+        lunar_machine_dims,
+    )
 
-    return (lunar_actor(network["hidden"], network["actor_dropout"]),
+    # a checkpoint written before network.observes existed holds a goal-blind machine
+    obs_dims = lunar_machine_dims(network.get("observes", "blind"))
+    return (lunar_actor(network["hidden"], network["actor_dropout"], obs_dims=obs_dims),
             lunar_critic(network["hidden"], 4, obs_dims=LUNAR_QVALUE_DIMS))
 
 

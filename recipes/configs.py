@@ -18,6 +18,7 @@ from pathlib import Path
 RECIPES_DIR = Path(__file__).parent
 """The folder of the recipes and their yamls."""
 SWEEP_CONFIG = RECIPES_DIR / "sweep.yaml"
+MAP_CONFIG = RECIPES_DIR / "map.yaml"
 
 
 @dataclass(frozen=True)

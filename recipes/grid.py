@@ -18,7 +18,7 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig
 
-from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
+from dcsc_torchrl.checkpoint import checkpoint_path
 from dcsc_torchrl.config import (
     ConfigError,
     distinct,
@@ -31,7 +31,7 @@ from dcsc_torchrl.protocol import (
     run_cell,
 )
 from dcsc_torchrl.recipes.folder import TABLES, folder_lock, prepare_results, write_csv
-from dcsc_torchrl.recipes.machines import pretrained_machine
+from dcsc_torchrl.recipes.machines import load_machine_checkpoint, pretrained_machine
 from dcsc_torchrl.recipes.settings import cell_settings, check_names, task_config
 from dcsc_torchrl.report import write_task_figures, write_task_summary
 from dcsc_torchrl.runlog import Progress, write_atomic
@@ -263,5 +263,5 @@ def checked_grid(task_name: str, *, quick: bool = False, overrides: Sequence[str
     for seed in seeds:
         if not cfg.pretrain.shipped and checkpoint_path(cfg.pretrain.out_dir, seed).exists():
             # a broken or outdated one: refused now
-            load_checkpoint(checkpoint_path(cfg.pretrain.out_dir, seed), task=task.name, modules=task.checkpoint_modules)
+            load_machine_checkpoint(task, cfg, checkpoint_path(cfg.pretrain.out_dir, seed))
     return make_grid(task.name, cfg, presets, seeds, quick=quick)

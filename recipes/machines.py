@@ -12,6 +12,7 @@ import torch
 from omegaconf import DictConfig
 
 from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
+from dcsc_torchrl.config import ConfigError
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.recipes.settings import pretrain_config
 from dcsc_torchrl.tasks import Task
@@ -34,13 +35,26 @@ PRETRAINING: dict[str, Callable[..., Path]] = {"lunarlander": _train_a2c, "uav":
 (imported on its first call: the recipes load torch and TorchRL)."""
 
 
+def load_machine_checkpoint(task: Task, cfg: DictConfig, path: Path) -> dict:
+    """The checkpoint at ``path``, refused in one line when its machine observes another view
+    than ``pretrain.observes`` asks for (both named)."""
+    data = load_checkpoint(path, task=task.name, modules=task.checkpoint_modules)
+    want = cfg.pretrain.get("observes")
+    # a checkpoint written before network.observes existed holds a goal-blind machine
+    have = data["config"].get("network", {}).get("observes", "blind")
+    if want is not None and have != want:
+        raise ConfigError(f"{path} holds a machine that observes {have!r}, but pretrain.observes is {want!r}: "
+                          f"pretrain one into another pretrain.out_dir, or set pretrain.observes={have}")
+    return data
+
+
 def machine_checkpoint(task: Task, cfg: DictConfig, seed: int) -> Path:
     """Where pretraining seed ``seed``'s machine is read: ``{pretrain.out_dir}/seed{seed}/checkpoint.pt``,
     or with ``pretrain.shipped`` the file shipped with the package (seed 0's)."""
     if cfg.pretrain.shipped:
         from dcsc_torchrl.shipped import shipped_path
 
-        return shipped_path(task)
+        return shipped_path(task, cfg.pretrain.get("observes"))
     return checkpoint_path(cfg.pretrain.out_dir, seed)
 
 
@@ -56,15 +70,15 @@ def pretrained_machine(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -
     """
     path = machine_checkpoint(task, cfg, seed)
     if cfg.pretrain.shipped:
-        return machine_from_checkpoint(load_checkpoint(path, task=task.name, modules=task.checkpoint_modules), task)
+        return machine_from_checkpoint(load_machine_checkpoint(task, cfg, path), task)
     train = PRETRAINING[task.name]
     if not path.exists():
         print(f"{task.name}: no checkpoint at {path}, pretraining seed {seed} first", file=sys.stderr, flush=True)
         train(pretrain_config(task, cfg, seed, quick=quick))
-    data = load_checkpoint(path, task=task.name, modules=task.checkpoint_modules)
+    data = load_machine_checkpoint(task, cfg, path)
     budget = data["config"].get("train", {}).get("episodes")  # a weights-only file has none
     if budget is not None and not data.get("finished", False) and data.get("episodes", budget) < budget:
         print(f"{task.name}: {path} stopped at episode {data['episodes']}, resuming", file=sys.stderr, flush=True)
         train(pretrain_config(task, cfg, seed, quick=quick), resume=True)
-        data = load_checkpoint(path, task=task.name, modules=task.checkpoint_modules)
+        data = load_machine_checkpoint(task, cfg, path)
     return machine_from_checkpoint(data, task)

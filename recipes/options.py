@@ -156,6 +156,20 @@ def add_reproduce_options(parser: argparse.ArgumentParser) -> argparse.ArgumentP
     return parser
 
 
+def add_map_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``dcsc map``."""
+    parser.add_argument("--quick", action="store_true", help="the same code paths at a tiny scale (two machines)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="the map's folder (default results/map, results/quick/map with --quick)")
+    parser.add_argument("--fresh", action="store_true",
+                        help="delete the results of an earlier run of another config and start over")
+    parser.add_argument("--workers", type=_int_at_least(1), default=2,
+                        help="pretrainings / cells at a time, as Ray tasks on a local instance (default 2); "
+                             "1: one after another in this process, no Ray")
+    _overrides(parser, "selected=[target-500] operators=[expert,surrogate_noisy]")
+    return parser
+
+
 def add_report_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dcsc report``."""
     parser.add_argument("--out", type=Path, default=Path("results"),

@@ -1,10 +1,12 @@
 """Pretrain the LunarLander machine: A2C + a Q critic (paper §6.1, Table A1).
 
-A2C with GAE over batched TargetLunarLander envs (pad at the centre: the standard task);
-``loss.algorithm=ppo`` trains the same networks with TorchRL's clipped PPO instead (several
-epochs of minibatches per batch), the way to a converged machine (docs/pretraining.md).
-The actor is an MLP with dropout (MC dropout samples it later, Eq. 10) that sees the 8
-standard values, not the pad. Beside it a Q critic learns Q(s, a) from a replay buffer
+A2C with GAE over batched TargetLunarLander envs (pad at the centre: the standard task; with
+``env.random_pad`` a pad drawn per episode); ``loss.algorithm=ppo`` trains the same networks
+with TorchRL's clipped PPO instead (several epochs of minibatches per batch), the way to a
+converged machine (docs/pretraining.md). The actor is an MLP with dropout (MC dropout samples
+it later, Eq. 10) that sees what ``network.observes`` says: the 8 standard values
+(``blind``) or all 9, the pad included (``target``, the paper's state); A2C's V critic sees
+the same. Beside them a Q critic learns Q(s, a) from a replay buffer
 by the TD loss of Algorithm 1 — DC-SC's theta update needs Q; it reads all 9 values, the
 pad included. Training stops after ``train.episodes`` episodes (or, with
 ``train.stop_success``, once the greedy machine lands that often); every ``train.checkpoint_every`` episodes an atomic
@@ -38,7 +40,13 @@ from torchrl.objectives import A2CLoss, ClipPPOLoss, SoftUpdate, ValueEstimators
 from dcsc_torchrl.batched_envs import make_lunar_env
 from dcsc_torchrl.config import ConfigError, to_plain
 from dcsc_torchrl.losses import QCriticLoss
-from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic, orthogonal_init_
+from dcsc_torchrl.networks import (
+    LUNAR_QVALUE_DIMS,
+    lunar_actor,
+    lunar_critic,
+    lunar_machine_dims,
+    orthogonal_init_,
+)
 from dcsc_torchrl.recipes import pretrain
 from dcsc_torchrl.recipes.configs import CONFIGS
 from dcsc_torchrl.training import (
@@ -127,6 +135,10 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     ``resume``); returns the learning curve's PNG."""
     if cfg.optim.lr_schedule not in LR_SCHEDULES:
         raise ConfigError(f"optim.lr_schedule: expected one of {', '.join(LR_SCHEDULES)}, got {cfg.optim.lr_schedule!r}")
+    try:
+        lunar_machine_dims(cfg.network.observes)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     if cfg.network.init not in NETWORK_INITS:
         raise ConfigError(f"network.init: expected one of {', '.join(NETWORK_INITS)}, got {cfg.network.init!r}")
     if cfg.loss.algorithm not in ALGORITHMS:
@@ -135,8 +147,9 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     torch.set_num_threads(cfg.threads)
 
     # --- networks: actor (with dropout), V critic for A2C, Q critic for DC-SC ----------
-    actor_net = lunar_actor(cfg.network.hidden, cfg.network.actor_dropout)
-    value_net = lunar_critic(cfg.network.hidden, 1)
+    obs_dims = lunar_machine_dims(cfg.network.observes)  # the actor and V see the same values
+    actor_net = lunar_actor(cfg.network.hidden, cfg.network.actor_dropout, obs_dims=obs_dims)
+    value_net = lunar_critic(cfg.network.hidden, 1, obs_dims=obs_dims)
     if cfg.network.init == "orthogonal":
         orthogonal_init_(actor_net, out_gain=0.01)
         orthogonal_init_(value_net, out_gain=1.0)
@@ -182,10 +195,11 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     stop_log = run.out_dir / "stop_checks.csv"
 
     def landed_enough(segment: int) -> bool:
-        """``train.stop_success``: the greedy machine's success on the standard pad, checked
-        after each segment on ``train.stop_eval_episodes`` episodes (seeds apart from eval's).
+        """``train.stop_success``: the greedy machine's success on the pads it trains on (the
+        standard pad, or random pads with ``env.random_pad``), checked after each segment on
+        ``train.stop_eval_episodes`` episodes (seeds apart from eval's).
         With ``train.keep_best`` a check above every earlier one keeps its checkpoint."""
-        rows = greedy(cfg.train.stop_eval_episodes, False, cfg.seed + 20_000 + segment)
+        rows = greedy(cfg.train.stop_eval_episodes, cfg.env.random_pad, cfg.seed + 20_000 + segment)
         success = sum(row["success"] for row in rows) / len(rows)
         if cfg.train.keep_best and (not stop_log.exists() or success > pd.read_csv(stop_log)["success"].max()):
             run.keep_best()
@@ -206,7 +220,8 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     )
     if cfg.train.keep_best:  # the result (checkpoint.pt, eval.csv) is the best check's machine
         run.restore_best()
-    curve = run.finish(f"{cfg.loss.algorithm.upper()} on TargetLunarLander (pad at the centre)")
+    pads = "a random pad" if cfg.env.random_pad else "pad at the centre"
+    curve = run.finish(f"{cfg.loss.algorithm.upper()} on TargetLunarLander ({pads}; sees {cfg.network.observes})")
 
     # --- machine-only evaluation: the standard pad and the moved pad (0 episodes: skip) --
     rows = []

@@ -15,6 +15,7 @@ from dcsc_torchrl.config import (
     load_config,
 )
 from dcsc_torchrl.humans.traits import PRESETS
+from dcsc_torchrl.networks import LUNAR_MACHINE_VIEWS
 from dcsc_torchrl.online import check_online_settings
 from dcsc_torchrl.protocol import (
     ArbiterSettings,
@@ -38,6 +39,8 @@ def task_config(task: Task, overrides: Sequence[str] = (), *, quick: bool = Fals
     check_groups(cfg)
     check_names("operator.presets", "operator preset", cfg.operator.presets, list(PRESETS))
     check_names("operator.main", "operator preset", [cfg.operator.main], list(PRESETS))
+    if "observes" in cfg.pretrain:
+        check_names("pretrain.observes", "machine view", [cfg.pretrain.observes], list(LUNAR_MACHINE_VIEWS))
     if not cfg.pretrain.shipped:
         pretrain_config(task, cfg, cfg.pretrain.seeds[0], quick=quick)
     return cfg
@@ -59,11 +62,21 @@ def pretrain_config(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -> D
         ConfigError: a setting of ``pretrain.recipe`` is refused by the pretraining yaml (named).
     """
     out_dir = checkpoint_path(cfg.pretrain.out_dir, seed).parent
-    settings = [*cfg.pretrain.recipe, f"seed={seed}", f"logger.out_dir={out_dir}"]
+    settings = [*view_settings(cfg), *cfg.pretrain.recipe, f"seed={seed}", f"logger.out_dir={out_dir}"]
     try:
         return load_config(CONFIGS[task.name].pretrain, settings, quick=quick)
     except ConfigError as err:
         raise ConfigError(f"pretrain.recipe: {err}") from None
+
+
+def view_settings(cfg: DictConfig) -> list[str]:
+    """The pretraining settings of ``pretrain.observes`` (LunarLander): a machine that sees the
+    pad (``target``) is pretrained on random pads, a goal-blind one on the centre pad; none for
+    a task without the key. ``pretrain.recipe`` comes after them and may say otherwise."""
+    observes = cfg.pretrain.get("observes")
+    if observes is None:
+        return []
+    return [f"network.observes={observes}", f"env.random_pad={str(observes == 'target').lower()}"]
 
 
 def _human_settings(**group: Any) -> dict[str, Any]:

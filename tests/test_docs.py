@@ -70,6 +70,10 @@ def test_every_dcsc_command_of_the_docs_parses_and_passes_the_config_door(page, 
         configs = CONFIGS[args.task]
         load_config(configs.protocol if args.command == "run" else configs.pretrain, args.overrides,
                     quick=args.quick, quiet=True)
+    elif args.command == "map":
+        from dcsc_torchrl.recipes.map import map_config
+
+        map_config(args.overrides, quick=args.quick)
     elif args.command == "sweep":
         load_config(SWEEP_CONFIG, [o for o in args.overrides if o.partition(".")[0] not in TASK_NAMES],
                     quick=args.quick, quiet=True)

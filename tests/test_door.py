@@ -255,7 +255,7 @@ def test_report_reads_theta_as_numbers_and_never_runs_a_cell(quick_run, tmp_path
 def test_the_figure_labels_the_real_group_size(quick_run, monkeypatch):
     task_dir, _ = quick_run
     labels = []
-    monkeypatch.setattr(report, "_save", lambda fig, path, **_: labels.append(fig.axes[0].get_xlabel()) or path)
+    monkeypatch.setattr(report, "save_figure", lambda fig, path, **_: labels.append(fig.axes[0].get_xlabel()) or path)
     report.write_task_figures(task_dir, get_task("lunarlander"), "expert", 0)
     assert labels[0] == "scenario group (1 scenarios each)"
 

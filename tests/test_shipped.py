@@ -10,38 +10,53 @@ from dcsc_torchrl.config import load_config
 from dcsc_torchrl.recipes.configs import CONFIGS
 from dcsc_torchrl.recipes.machines import PRETRAINING
 from dcsc_torchrl.shipped import greedy_return, load_shipped, shipped_machine, shipped_path
-from dcsc_torchrl.tasks import TASKS, get_task
+from dcsc_torchrl.tasks import get_task
 
 
 def recipe_config(task_name: str, overrides: list[str] = ()):
     return load_config(CONFIGS[task_name].pretrain, list(overrides))
 
 
-@pytest.mark.parametrize("name", list(TASKS))
-def test_shipped_weights_are_small_weights_only_files_of_the_paper_setting(name):
+SHIPPED = [("lunarlander", None), ("lunarlander", "target"), ("uav", None)]
+"""Every shipped machine: (task, what it observes; ``None``: the task's default file)."""
+
+
+def view_settings(observes: str | None) -> list[str]:
+    """The recipe settings of a machine that ``observes`` (none for the default file)."""
+    return [] if observes is None else [f"network.observes={observes}",
+                                        f"env.random_pad={str(observes == 'target').lower()}"]
+
+
+def shipped_command(name: str, observes: str | None) -> str:
+    return " ".join(["dcsc pretrain", name, "seed=0", *view_settings(observes)])
+
+
+@pytest.mark.parametrize(("name", "observes"), SHIPPED)
+def test_shipped_weights_are_small_weights_only_files_of_the_recipes_settings(name, observes):
     task = get_task(name)
-    path = shipped_path(task)
+    path = shipped_path(task, observes)
     assert path.stat().st_size < 2_000_000
-    data = load_shipped(task)
+    data = load_shipped(task, observes)
     assert set(data["state"]) == set(task.checkpoint_modules)  # no optimiser, no replay buffer
-    cfg = recipe_config(name)
-    # files exported before the A2C recipe's network.init key were trained with its default
-    assert {"init": "default", **data["config"]["network"]} == {"init": "default", **dict(cfg.network)}
+    cfg = recipe_config(name, view_settings(observes))
+    # files exported before the A2C recipe's network.init / network.observes keys hold their defaults
+    legacy = {"init": "default", "observes": "blind"} if name == "lunarlander" else {}
+    assert {**legacy, **data["config"]["network"]} == {**legacy, **dict(cfg.network)}
     assert data["config"]["seed"] == 0
-    assert data["episodes"] >= cfg.train.episodes and data["command"] == f"dcsc pretrain {name} seed=0"
-    assert (path.parent / "README.md").read_text().count(data["command"]) == 1
+    assert data["episodes"] >= cfg.train.episodes and data["command"] == shipped_command(name, observes)
+    assert (path.parent / "README.md").read_text().count(f"`{data['command']}`") == 1
 
 
-@pytest.mark.parametrize("name", list(TASKS))
-def test_shipped_weights_load_into_the_recipe_networks_and_give_their_recorded_return(name):
+@pytest.mark.parametrize(("name", "observes"), SHIPPED)
+def test_shipped_weights_load_into_the_recipe_networks_and_give_their_recorded_return(name, observes):
     task = get_task(name)
-    actor, critic = shipped_machine(task)
-    fresh_actor, fresh_critic = task.make_networks(recipe_config(name).network)
+    actor, critic = shipped_machine(task, observes)
+    fresh_actor, fresh_critic = task.make_networks(recipe_config(name, view_settings(observes)).network)
     for loaded, fresh in ((actor, fresh_actor), (critic, fresh_critic)):
         assert {k: v.shape for k, v in loaded.state_dict().items()} == {
             k: v.shape for k, v in fresh.state_dict().items()}
     assert not actor.training and not critic.training
-    assert greedy_return(task, actor) == pytest.approx(load_shipped(task)["greedy_return"], abs=1e-3)
+    assert greedy_return(task, actor) == pytest.approx(load_shipped(task, observes)["greedy_return"], abs=1e-3)
 
 
 def test_run_with_the_shipped_machine_needs_seed_0_only(capsys):
@@ -51,12 +66,11 @@ def test_run_with_the_shipped_machine_needs_seed_0_only(capsys):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", list(TASKS))
-def test_the_recorded_command_rederives_the_shipped_weights(name, tmp_path):
-
+@pytest.mark.parametrize(("name", "observes"), SHIPPED)
+def test_the_recorded_command_rederives_the_shipped_weights(name, observes, tmp_path):
     task = get_task(name)
-    PRETRAINING[name](recipe_config(name, ["seed=0", f"logger.out_dir={tmp_path}"]))
-    shipped = load_shipped(task)["state"]
+    PRETRAINING[name](recipe_config(name, [*view_settings(observes), "seed=0", f"logger.out_dir={tmp_path}"]))
+    shipped = load_shipped(task, observes)["state"]
     retrained = torch.load(tmp_path / "checkpoint.pt", weights_only=True)["state"]
     for module in task.checkpoint_modules:
         for key, value in shipped[module].items():

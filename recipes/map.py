@@ -1,0 +1,110 @@
+"""``dcsc map``: where shared control pays, over operators x machines (docs/cli.md).
+
+    dcsc map [--quick] [--out DIR] [--fresh] [--workers N] [key=value ...]
+
+For every machine of ``recipes/map.yaml`` (what it observes x how long it trained), the
+task's protocol (``dcsc run``'s, the same cells and CSVs) runs every operator preset of the
+map into ``DIR/<machine>/<task>/``, each machine pretrained first when its checkpoint is
+missing. Then ``DIR/map.csv`` (:func:`~dcsc_torchrl.sharing_map.sharing_map`), ``DIR/map.md``
+and ``DIR/fig_map.png`` set each method's validation success against the better partner
+alone, per scenario, with 95% CIs. A machine whose cells are done is not run again, so a
+stopped map resumes; ``--fresh`` starts every machine's folder over.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import pandas as pd
+import torch
+from omegaconf import DictConfig
+
+from dcsc_torchrl.config import ConfigError, distinct, load_config, writable_folder
+from dcsc_torchrl.methods import METHOD_NAMES
+from dcsc_torchrl.recipes.configs import MAP_CONFIG
+from dcsc_torchrl.recipes.grid import TaskGrid, checked_grid, run_grid
+from dcsc_torchrl.recipes.options import Parser, add_map_options
+from dcsc_torchrl.recipes.reproduce import executor
+from dcsc_torchrl.recipes.settings import check_names
+from dcsc_torchrl.report import QUICK_NOTE, read_table
+from dcsc_torchrl.runlog import write_atomic
+from dcsc_torchrl.sharing_map import map_markdown, plot_map, sharing_map
+
+
+def map_config(overrides: Sequence[str] = (), *, quick: bool = False) -> DictConfig:
+    """``recipes/map.yaml`` with ``overrides``, checked: the machines selected exist, the
+    operators and methods are known, and each machine's protocol config passes the door."""
+    cfg = load_config(MAP_CONFIG, overrides, quick=quick)
+    cfg.selected = check_names("selected", "machine", distinct("selected", cfg.selected), list(cfg.machines))
+    cfg.methods = check_names("methods", "method", distinct("methods", cfg.methods), list(METHOD_NAMES))
+    cfg.operators = distinct("operators", cfg.operators)
+    return cfg
+
+
+def machine_overrides(cfg: DictConfig, name: str) -> list[str]:
+    """The protocol settings of machine ``name``: its folder, what it observes, its seeds and
+    the recipe of its strength, then the map's own ``protocol`` settings."""
+    machine = cfg.machines[name]
+    check_names(f"machines.{name}.strength", "strength", [machine.strength], list(cfg.strengths))
+    recipe = ",".join(cfg.strengths[machine.strength])
+    seeds = ",".join(str(seed) for seed in machine.seeds)
+    return [f"pretrain.out_dir={Path(cfg.pretrain_dir) / name}", f"pretrain.observes={machine.observes}",
+            f"pretrain.seeds=[{seeds}]", f"pretrain.recipe=[{recipe}]", *cfg.protocol]
+
+
+def machine_grids(cfg: DictConfig, *, quick: bool) -> dict[str, TaskGrid]:
+    """Every selected machine's grid (the task's protocol config, checked whole, before any cell runs)."""
+    grids = {}
+    for name in cfg.selected:
+        try:
+            grids[name] = checked_grid(cfg.task, quick=quick, overrides=machine_overrides(cfg, name),
+                                       operators=cfg.operators, option="operators")
+        except ConfigError as err:
+            raise ConfigError(f"machines.{name}: {err}") from None
+    return grids
+
+
+def write_map(out: Path, task: str, machines: Sequence[str], *, quick: bool = False) -> Path:
+    """``map.csv``, ``map.md`` and ``fig_map.png`` from every machine's ``<machine>/<task>/episodes.csv``
+    (``quick``: ``map.md`` says its numbers test the code, not the method)."""
+    frames = [read_table(out / name / task / "episodes.csv").assign(machine=name) for name in machines
+              if (out / name / task / "episodes.csv").is_file()]
+    if not frames:
+        raise ConfigError(f"--out {out}: no machine's {task}/episodes.csv there yet")
+    table = sharing_map(pd.concat(frames, ignore_index=True))
+    write_atomic(out / "map.csv", lambda f: table.to_csv(f, index=False))
+    plot_map(table, out / "fig_map.png", f"{task}: success − the better partner alone (validation, 95% CI)")
+    text = (f"# Where shared control pays: {task}\n\nEach method's validation success minus the better "
+            "partner's alone, in points, paired per scenario (± 95% CI); **bold**: above both partners. "
+            "Machines: `recipes/map.yaml`.\n\n" + (QUICK_NOTE + "\n" if quick else "") + map_markdown(table))
+    path = out / "map.md"
+    write_atomic(path, lambda f: f.write(text))
+    return path
+
+
+def run_map(out: Path | None = None, *, quick: bool = False, overrides: Sequence[str] = (), fresh: bool = False,
+            workers: int = 2) -> Path:
+    """Every selected machine's grid (resumable), then the map; returns ``map.md``."""
+    out = writable_folder((out or Path("results/quick/map" if quick else "results/map")).resolve())
+    cfg = map_config(overrides, quick=quick)
+    grids = machine_grids(cfg, quick=quick)
+    run = executor(workers)
+    torch.set_num_threads(next(iter(grids.values())).cfg.threads)
+    methods = tuple(cfg.methods)
+    for name, grid in grids.items():
+        start = time.perf_counter()
+        result = run_grid(out / name, [grid], methods, run, quick=quick, fresh=fresh)
+        print(f"map: {name}: {len(result.ran)} cell(s) run, {len(result.skipped)} done before, "
+              f"{len(result.failed)} failed ({time.perf_counter() - start:.0f} s)", flush=True)
+    return write_map(out, cfg.task, list(grids), quick=quick)
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    args = add_map_options(Parser(description=__doc__.split("\n\n")[0])).parse_args(argv)
+    return run_map(args.out, quick=args.quick, overrides=args.overrides, fresh=args.fresh, workers=args.workers)
+
+
+if __name__ == "__main__":
+    main()
