@@ -188,6 +188,9 @@ def save_arbiter(arbiter: Arbiter, path: str | os.PathLike, *, task: str) -> Pat
     from dcsc_torchrl.checkpoint import save_checkpoint
     if isinstance(arbiter, RuleArbiter):
         raise ValueError("a RuleArbiter's rule is code, not state: it cannot be saved; rebuild it from its rule")
+    if isinstance(arbiter, InterventionArbiter):
+        raise ValueError("an InterventionArbiter holds no state of its own: save its q_value network, "
+                         "and rebuild the arbiter from it")
     return save_checkpoint(path, task=task, payload={"arbiter": arbiter.state_dict()})
 
 
@@ -352,6 +355,65 @@ class RuleArbiter(Arbiter):
             raise ValueError(f"RuleArbiter's rule must return one share per frame, shape {tuple(ratio.shape[:-1])}, "
                              f"got {tuple(share.shape)}")
         return check_values("rule share", share, 0.0, 1.0).unsqueeze(-1)
+
+
+class InterventionArbiter(Arbiter):
+    """IDA, interventional assistance (McMahan et al., 2024): the machine acts exactly where a
+    Q function says its action beats the operator's.
+
+    ``beta = 1`` where ``Q(s, a_machine) > Q(s, a_operator)``, else ``beta = 0``: on a tie the
+    operator keeps control. Discrete actions: ``q_value(observation) -> [*batch, n]`` action
+    values, ``a_machine`` the machine's most likely key (the argmax of ``machine_probs``),
+    ``a_operator`` the operator's key. Continuous actions: ``q_value(observation, action) ->
+    [*batch, 1]`` on the two actions. One beta for every action dimension: IDA hands over the
+    whole action. No confidence enters the decision. ``q_value`` is used as given, under
+    ``torch.no_grad()`` (the protocol hands it a copy of the cell's critic).
+
+    Args:
+        q_value: the action-value network.
+        dims: number of action dimensions.
+        discrete: whether the actions are one-hot keys (``q_value`` gives a value per key).
+        observation_key, machine_key, human_key: where the state and the two actions are read
+            (``machine_key`` defaults to ``machine_probs`` for discrete actions, ``machine_action``
+            otherwise).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> q = lambda obs: torch.tensor([[0.0, 1.0, 0.5], [0.0, 1.0, 2.0]])
+        >>> arbiter = InterventionArbiter(q, discrete=True)
+        >>> td = TensorDict({"machine_confidence": torch.ones(2, 1), "human_confidence": torch.ones(2, 1),
+        ...                  "observation": torch.zeros(2, 1), "machine_probs": torch.tensor([[0.2, 0.7, 0.1]] * 2),
+        ...                  "human_action": torch.tensor([[0.0, 0.0, 1.0]] * 2)}, [2])
+        >>> arbiter(td)["beta"]
+        tensor([[1.],
+                [0.]])
+    """
+
+    def __init__(self, q_value: Callable[..., torch.Tensor], dims: int = 1, *, discrete: bool,
+                 observation_key: NestedKey = "observation", machine_key: NestedKey | None = None,
+                 human_key: NestedKey = "human_action", **kwargs) -> None:
+        super().__init__(dims, **kwargs)
+        if not callable(q_value):
+            raise TypeError(f"q_value must be callable (an action-value network), got {type(q_value).__name__}")
+        self.q_value = q_value
+        self.discrete = bool(discrete)
+        self.observation_key = observation_key
+        self.machine_key = machine_key or ("machine_probs" if discrete else "machine_action")
+        self.human_key = human_key
+        self.in_keys = [*self.in_keys[:2], observation_key, self.machine_key, human_key]
+
+    def machine_share(self, ratio: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+        observation = tensordict.get(self.observation_key)
+        machine, human = tensordict.get(self.machine_key), tensordict.get(self.human_key)
+        with torch.no_grad():
+            if self.discrete:
+                values = self.q_value(observation)
+                q_machine = values.gather(-1, machine.argmax(-1, keepdim=True))
+                q_human = values.gather(-1, human.argmax(-1, keepdim=True))
+            else:
+                q_machine, q_human = self.q_value(observation, machine), self.q_value(observation, human)
+        check_values("the intervention's Q", torch.cat([q_machine, q_human], -1))
+        return (q_machine > q_human).to(ratio.dtype)
 
 
 def centred_fusion_weight(theta: torch.Tensor, ratio: torch.Tensor, gain: float) -> torch.Tensor:

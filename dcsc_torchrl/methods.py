@@ -8,6 +8,9 @@ operator      fixed     :class:`HumanOnlyArbiter` (the operator alone)
 hula          fixed     :class:`HULAArbiter` (threshold calibrated on the operator-alone runs)
 rule          fixed     :class:`RuleArbiter` on the task's hand-written switch
                         (:attr:`Task.authority_rule`; skipped for a task without one)
+ida           fixed     :class:`InterventionArbiter` (IDA): the machine acts where the
+                        cell's critic (Algorithm 1's Q, after its warm-up) rates its
+                        action above the operator's
 dcsc          learned   :class:`ConfidenceArbiter` (Eq. 15 as printed), theta learned online
 dcsc_centred  learned   :class:`CentredConfidenceArbiter`, theta learned online
 dcsc_frozen   frozen    a learned arbiter fed its confidences' collaboration means
@@ -27,6 +30,7 @@ Examples:
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -67,6 +71,7 @@ METHODS: dict[str, Method] = {
         Method("operator", "operator", "fixed"),
         Method("hula", "HULA", "fixed"),
         Method("rule", "rule-based switch", "fixed"),
+        Method("ida", "IDA (Algorithm 1's Q)", "fixed"),
         Method("dcsc", "DC-SC (Eq. 15)", "learned", form="paper"),
         Method("dcsc_centred", "DC-SC (centred)", "learned", form="centred"),
         Method("dcsc_frozen", "DC-SC, confidences frozen", "frozen"),
@@ -116,6 +121,8 @@ def make_arbiter(
     hula_threshold: float | None = None,
     constant_beta: float | None = None,
     rule: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    q_value: torch.nn.Module | None = None,
+    discrete: bool = True,
 ) -> Arbiter:
     """The arbiter that makes ``method`` out of the common pipeline (``action_dims`` betas).
 
@@ -123,7 +130,8 @@ def make_arbiter(
     :class:`CentredConfidenceArbiter` (``theta_init``, ``gain``), ``hula`` a
     :class:`HULAArbiter` of ``hula_threshold``, ``constant`` a :class:`ConstantArbiter`
     of ``constant_beta``, ``rule`` a :class:`RuleArbiter` of ``rule`` (a task's
-    ``authority_rule``). ``dcsc_frozen`` wraps a learned arbiter
+    ``authority_rule``), ``ida`` an :class:`InterventionArbiter` on a frozen copy of
+    ``q_value`` (``discrete``: whether it gives a value per key). ``dcsc_frozen`` wraps a learned arbiter
     (:class:`FrozenConfidenceArbiter`), so the protocol builds it.
     """
     from dcsc_torchrl import arbiters
@@ -140,6 +148,11 @@ def make_arbiter(
         if rule is None:
             raise ValueError("the rule arbiter needs a rule: the task's authority_rule (this task has none)")
         return arbiters.RuleArbiter(rule, action_dims)
+    if method == "ida":
+        if q_value is None:
+            raise ValueError("the IDA arbiter needs a Q network: the cell's critic (Algorithm 1's Q)")
+        frozen = copy.deepcopy(q_value).requires_grad_(False).eval()
+        return arbiters.InterventionArbiter(frozen, action_dims, discrete=discrete)
     if method == "dcsc":
         return arbiters.ConfidenceArbiter(theta_init, action_dims)
     if method == "dcsc_centred":

@@ -258,6 +258,7 @@ class _Cell:
         self.progress = progress
         self.hula_threshold: float | None = arbiter.hula_threshold
         self.uncertainty_scale = 1.0
+        self.critic: torch.nn.Module | None = None  # Algorithm 1's Q after its warm-up (IDA reads it)
         spec_env = self.make_env([0], operator_seed=0)
         self.action_spec = spec_env.full_action_spec["action"]
         self.observation_size = spec_env.observation_spec["observation"].shape[-1]
@@ -273,7 +274,8 @@ class _Cell:
         if arbiter is None:
             start = self.arbiter.start(method) if METHODS[method].kind == "learned" else {}
             arbiter = make_arbiter(method, self.task.action_dims, hula_threshold=self.hula_threshold,
-                                   rule=self.task.authority_rule, **start, **kwargs)
+                                   rule=self.task.authority_rule, q_value=self.critic, discrete=self.task.discrete,
+                                   **start, **kwargs)
         return build_policy(self.machine_net, arbiter, self.action_spec, discrete=self.task.discrete,
                             num_samples=self.machine.num_samples, lam=self.machine.lam, delta2=self.machine.delta2,
                             tau_inv=self.machine.tau_inv, uncertainty_scale=self.uncertainty_scale,
@@ -348,6 +350,7 @@ class _Cell:
         calibration = {**self.base, "hula_threshold": self.hula_threshold,
                        **confidence_signal(self.uncertainty_scale, alone.frames, warm.action_gap(alone.frames),
                                            machine.lam, machine.delta2)}
+        self.critic = warm.critic
         return episodes, warm.critic, calibration
 
     def learner(self, policy: SharedPolicyModule, critic: torch.nn.Module) -> OnlineLearner:
@@ -444,7 +447,8 @@ def run_cell(
        :func:`~dcsc_torchrl.policy.plays_operator_alone`) takes the episodes of the
        ``operator`` run when that ran before it; ``dcsc_frozen`` starts from the
        ``arbiter.form`` arbiter's theta after collaboration, its confidences frozen at
-       their collaboration means.
+       their collaboration means; ``ida`` acts on a frozen copy of the critic as its
+       warm-up left it (Algorithm 1's Q, before any collaboration).
 
     Args:
         task: the registered task (:data:`dcsc_torchrl.tasks.TASKS`).
@@ -469,6 +473,9 @@ def run_cell(
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}: expected names of {', '.join(METHOD_NAMES)}")
     check_task_methods(task, methods)
+    if "ida" in methods and online.get("theta_critic") == "authority":
+        raise ValueError("method ida reads Q(s, a): it cannot run with online.theta_critic=authority, "
+                         "whose critic is Q(s, beta)")
     scenarios = Scenarios.standard() if scenarios is None else scenarios
     protocol = ProtocolSettings() if protocol is None else protocol
     base = {"task": task.name, "operator": operator_name, "pretrain_seed": pretrain_seed}

@@ -1,0 +1,67 @@
+"""IDA's intervention (:class:`InterventionArbiter`): the machine acts exactly where the Q
+function rates its action above the operator's, the operator keeps a tie."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from dcsc_torchrl.arbiters import InterventionArbiter, save_arbiter
+from dcsc_torchrl.methods import make_arbiter
+from dcsc_torchrl.networks import ConcatInputs
+
+
+def frames(n: int, **keys: torch.Tensor) -> TensorDict:
+    return TensorDict({"machine_confidence": torch.rand(n, 1), "human_confidence": torch.rand(n, 1), **keys}, [n])
+
+
+def test_the_machine_acts_exactly_where_its_key_has_the_higher_q():
+    torch.manual_seed(0)
+    n, keys = 500, 4
+    table = torch.randint(0, 3, (n, keys)).float()  # small integers: many ties
+    observation = torch.arange(n).float().unsqueeze(-1)
+    machine_probs = torch.softmax(torch.randn(n, keys), -1)
+    human = torch.nn.functional.one_hot(torch.randint(0, keys, (n,)), keys).float()
+    arbiter = InterventionArbiter(lambda obs: table[obs.squeeze(-1).long()], discrete=True)
+    beta = arbiter(frames(n, observation=observation, machine_probs=machine_probs, human_action=human))["beta"]
+    q_machine = table.gather(-1, machine_probs.argmax(-1, keepdim=True))
+    q_human = table.gather(-1, human.argmax(-1, keepdim=True))
+    assert torch.equal(beta, (q_machine > q_human).float())
+    ties = q_machine == q_human
+    assert ties.any() and (beta[ties] == 0).all()  # on a tie the operator keeps control
+    assert 0 < beta.mean() < 1
+
+
+def test_continuous_actions_compare_q_of_the_two_actions_and_hand_over_every_dimension():
+    q = ConcatInputs(torch.nn.Linear(9 + 3, 1))
+    n = 64
+    td = frames(n, observation=torch.randn(n, 9), machine_action=torch.rand(n, 3), human_action=torch.rand(n, 3))
+    beta = InterventionArbiter(q, 3, discrete=False)(td)["beta"]
+    with torch.no_grad():
+        expected = (q(td["observation"], td["machine_action"]) > q(td["observation"], td["human_action"])).float()
+    assert beta.shape == (n, 3) and torch.equal(beta, expected.expand(n, 3))
+
+
+def test_the_method_acts_on_a_frozen_copy_of_the_critic():
+    critic = torch.nn.Linear(9, 4)
+    arbiter = make_arbiter("ida", 1, q_value=critic)
+    assert arbiter.q_value is not critic and not any(p.requires_grad for p in arbiter.q_value.parameters())
+    with torch.no_grad():
+        critic.weight.add_(1.0)  # the cell's critic learning on does not move IDA's
+    assert not torch.equal(arbiter.q_value.weight, critic.weight)
+    with pytest.raises(ValueError, match="IDA arbiter needs a Q network"):
+        make_arbiter("ida", 1)
+
+
+def test_an_intervention_arbiter_is_not_saved_as_if_it_had_state(tmp_path):
+    with pytest.raises(ValueError, match="save its q_value network"):
+        save_arbiter(InterventionArbiter(torch.nn.Linear(9, 4), discrete=True), tmp_path / "a.pt", task="lunarlander")
+
+
+def test_a_non_finite_q_is_refused_naming_it():
+    arbiter = InterventionArbiter(lambda obs: torch.full((2, 4), float("nan")), discrete=True)
+    td = frames(2, observation=torch.zeros(2, 9), machine_probs=torch.full((2, 4), 0.25),
+                human_action=torch.eye(4)[:2])
+    with pytest.raises(ValueError, match="the intervention's Q"):
+        arbiter(td)
