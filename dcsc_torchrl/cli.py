@@ -6,7 +6,7 @@
     dcsc reproduce [--quick] [--out DIR] [--fresh] [key=value ...]
     dcsc map [--quick] [--out DIR] [--fresh] [--workers N] [key=value ...]
     dcsc report [--out DIR]
-    dcsc play lunarlander [--assist {dcsc,none}] [--checkpoint PATH] [--episodes N] [--seed S] [--out DIR]
+    dcsc play lunarlander [--assist {dcsc,ida,none}] [--checkpoint PATH] [--episodes N] [--seed S] [--out DIR]
     dcsc ship {lunarlander,uav} CHECKPOINT
 
 The top of the package: it parses and dispatches, and nothing imports it. The options of

@@ -1,14 +1,16 @@
 """``dcsc play lunarlander``: fly TargetLunarLander yourself, alone or with DC-SC.
 
-    dcsc play lunarlander [--assist dcsc|none] [--checkpoint PATH] [--episodes N] [--seed S] [--out DIR]
+    dcsc play lunarlander [--assist dcsc|ida|none] [--checkpoint PATH] [--episodes N] [--seed S] [--out DIR]
 
 The frames of a ``render_mode="rgb_array"`` TargetLunarLander go to the
 :class:`~dcsc_torchrl.humans.KeyboardPilot`'s window. With ``--assist dcsc`` the
 pretrained machine (MC dropout, Eqs. 10, 13) shares control with you through the learned
 arbiter of the simulated runs (``arbiter.form`` of ``recipes/shared_control_lunarlander.yaml``),
 and theta (and the Q critic, unless the yaml's ``online.critic_lr`` is 0) learn online as
-in Algorithm 1, once every ``protocol.rollout_length`` frames; b_h, b_m and beta are drawn live on screen. Alone, your
-b_h (Eqs. 6, 9) and last RT are.
+in Algorithm 1, once every ``protocol.rollout_length`` frames; b_h, b_m and beta are drawn live on screen. With
+``--assist ida`` the machine takes a frame exactly where its pretrained Q critic rates the
+machine's key above yours (IDA's intervention, :class:`~dcsc_torchrl.arbiters.InterventionArbiter`),
+nothing learning. Alone, your b_h (Eqs. 6, 9) and last RT are.
 
 Every play writes what the simulated runs write, into ``--out`` (default
 ``results/play/``): ``episodes.csv`` (one row per finished episode: method, phase
@@ -82,17 +84,19 @@ def load_machine(path: Path) -> tuple[nn.Module, nn.Module]:
 
 
 def assisting_machine(checkpoint: Path | None, cfg: DictConfig) -> tuple[nn.Module, nn.Module]:
-    """The machine of ``--assist dcsc``: ``checkpoint``; else the first pretraining seed's
-    checkpoint of the config; else, when that was never pretrained, the shipped machine."""
+    """The machine of ``--assist dcsc`` or ``ida``: ``checkpoint``; else the first pretraining seed's
+    checkpoint of the config; else, when that was never pretrained, the shipped machine (of
+    the config's ``pretrain.observes``)."""
     from dcsc_torchrl.checkpoint import checkpoint_path
 
     default = checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])
     if checkpoint is None and not default.exists():
         from dcsc_torchrl.shipped import shipped_machine, shipped_path
 
-        print(f"no checkpoint at {default}: flying with the shipped machine ({shipped_path(TASK).name})",
+        observes = cfg.pretrain.get("observes")
+        print(f"no checkpoint at {default}: flying with the shipped machine ({shipped_path(TASK, observes).name})",
               file=sys.stderr)
-        return shipped_machine(TASK)
+        return shipped_machine(TASK, observes)
     return load_machine(checkpoint or default)
 
 
@@ -115,16 +119,21 @@ def assist_method(cfg: DictConfig) -> str:
     return learned_method(cfg.arbiter.form)
 
 
-def make_policy(env: TransformedEnv, machine: nn.Module | None, cfg: DictConfig | None = None) -> TensorDictModuleBase:
-    """DC-SC's shared policy around ``machine`` (as the simulated runs build it), or the pilot alone."""
+def make_policy(env: TransformedEnv, machine: nn.Module | None, cfg: DictConfig | None = None, *,
+                q_value: nn.Module | None = None) -> TensorDictModuleBase:
+    """The shared policy around ``machine`` (as the simulated runs build it), or the pilot alone:
+    DC-SC's learned arbiter, or with ``q_value`` IDA's intervention on that Q critic."""
     if machine is None:
         return operator_only_policy()
     from dcsc_torchrl.methods import build_policy, make_arbiter
     from dcsc_torchrl.protocol import ArbiterSettings
 
     cfg = play_config() if cfg is None else cfg
-    method = assist_method(cfg)
-    arbiter = make_arbiter(method, TASK.action_dims, **ArbiterSettings(**cfg.arbiter).start(method))
+    if q_value is not None:
+        arbiter = make_arbiter("ida", TASK.action_dims, q_value=q_value, discrete=TASK.discrete)
+    else:
+        method = assist_method(cfg)
+        arbiter = make_arbiter(method, TASK.action_dims, **ArbiterSettings(**cfg.arbiter).start(method))
     return build_policy(machine, arbiter, env.full_action_spec["action"], discrete=TASK.discrete, **cfg.machine)
 
 
@@ -291,8 +300,8 @@ def run_play(args: argparse.Namespace) -> None:
     cfg = play_config()
     confidence = HumanConfidenceTransform(**cfg.human)
     try:
-        networks = assisting_machine(args.checkpoint, cfg) if args.assist == "dcsc" else None
-        method = assist_method(cfg) if networks is not None else "operator"
+        networks = assisting_machine(args.checkpoint, cfg) if args.assist != "none" else None
+        method = {"dcsc": assist_method(cfg), "ida": "ida", "none": "operator"}[args.assist]
         recorder = PlayRecorder(args.out, method, args.participant)  # its folder checked before the window opens
         render_env = gym.make(LUNAR_ID, render_mode="rgb_array")
         pilot = KeyboardPilot(frame_source=render_env.render, t_d=confidence.t_d)
@@ -300,8 +309,8 @@ def run_play(args: argparse.Namespace) -> None:
         raise SystemExit(f"dcsc play: {error}") from error
     env = make_play_env(render_env, pilot, confidence, args.seed)
     machine, critic = networks if networks is not None else (None, None)
-    policy = make_policy(env, machine, cfg)
-    learner = make_learner(policy, critic, cfg) if machine is not None else None
+    policy = make_policy(env, machine, cfg, q_value=critic if args.assist == "ida" else None)
+    learner = make_learner(policy, critic, cfg) if args.assist == "dcsc" else None
     print("arrow keys (or W/A/D): up = main engine, left/right = side engines; Esc quits")
     try:
         summaries = play(env, policy, pilot, args.episodes, seed=args.seed, learner=learner,

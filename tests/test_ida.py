@@ -65,3 +65,12 @@ def test_a_non_finite_q_is_refused_naming_it():
                 human_action=torch.eye(4)[:2])
     with pytest.raises(ValueError, match="the intervention's Q"):
         arbiter(td)
+
+
+def test_a_cell_asked_for_ida_with_an_authority_critic_is_refused_before_its_first_frame():
+    from dcsc_torchrl.protocol import run_cell
+    from dcsc_torchrl.tasks import get_task
+
+    with pytest.raises(ValueError, match="method ida reads Q\\(s, a\\).*theta_critic=authority"):
+        run_cell(get_task("lunarlander"), None, None, None, operator_name="x", pretrain_seed=0, human={}, machine=None,
+                 arbiter=None, online={"theta_critic": "authority"}, warmup=None, methods=["operator", "ida"])

@@ -217,7 +217,7 @@ def test_keyboard_pilot_passes_check_env_specs():
 
 
 def play_session(machine, *, critic=None, out=None, episodes=1, events=list, exploration_type=ExplorationType.RANDOM,
-                 theta_init=None):
+                 theta_init=None, ida=False):
     clock = FakeClock()
     render_env = gym.make(LUNAR_ID, render_mode="rgb_array")
     screen = RecordingScreen()
@@ -233,11 +233,12 @@ def play_session(machine, *, critic=None, out=None, episodes=1, events=list, exp
     cfg = play_config()
     if theta_init is not None:
         cfg.arbiter.centred.theta_init = theta_init
-    policy = make_policy(env, machine, cfg)
-    learner = make_learner(policy, critic, cfg) if critic is not None else None
+    policy = make_policy(env, machine, cfg, q_value=critic if ida else None)
+    learner = make_learner(policy, critic, cfg) if critic is not None and not ida else None
     recorder = None
     if out is not None:
-        recorder = PlayRecorder(out, "dcsc_centred" if machine is not None else "operator", "tester")
+        method = "ida" if ida else "dcsc_centred" if machine is not None else "operator"
+        recorder = PlayRecorder(out, method, "tester")
     summaries = play(env, policy, pilot, episodes=episodes, learner=learner, rollout_length=5, recorder=recorder,
                      exploration_type=exploration_type)
     return summaries, screen, policy, learner
@@ -301,6 +302,19 @@ def test_play_with_dcsc_learns_online_and_writes_the_simulated_runs_files(tmp_pa
                    "human_confidence", "machine_uncertainty", "machine_confidence", "beta"):
         assert trace[column].notna().all(), column
     assert trace.groupby("episode")["step"].max().tolist() == [s["steps"] for s in summaries]
+
+
+def test_play_with_ida_hands_over_whole_frames_by_the_machines_q_and_learns_nothing(tmp_path):
+    import pandas as pd
+
+    actor, critic = load_machine(tiny_checkpoint(tmp_path))
+    critic_before = [p.detach().clone() for p in critic.parameters()]
+    summaries, _, policy, learner = play_session(machine=actor, critic=critic, out=tmp_path / "study", ida=True)
+    assert learner is None and type(policy["arbiter"]).__name__ == "InterventionArbiter"
+    assert all((a == b).all() for a, b in zip(critic_before, critic.parameters(), strict=True))
+    trace = pd.read_csv(tmp_path / "study" / "trace.csv")
+    assert len(trace) == summaries[0]["steps"] and set(trace["beta"].unique()) <= {0.0, 1.0}
+    assert pd.read_csv(tmp_path / "study" / "episodes.csv")["method"].tolist() == ["ida"]
 
 
 @pytest.mark.parametrize("exploration_type", [ExplorationType.MODE, ExplorationType.RANDOM])
