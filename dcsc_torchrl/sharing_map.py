@@ -133,7 +133,7 @@ def plot_map(table: pd.DataFrame, path: Path, title: str) -> Path:
                 values[i, j] = 100 * indexed.loc[(*key, method), "delta"]
                 halves[i, j] = 100 * indexed.loc[(*key, method), "delta_ci"]
     limit = max(10.0, float(np.nanmax(np.abs(values))) if np.isfinite(values).any() else 10.0)
-    fig, ax = plt.subplots(figsize=(1.3 * len(methods) + 3.5, 0.42 * len(keys) + 1.8))
+    fig, ax = plt.subplots(figsize=(1.3 * len(methods) + 6.5, 0.42 * len(keys) + 1.8))
     image = ax.imshow(values, cmap="RdBu", vmin=-limit, vmax=limit, aspect="auto")
     for i in range(len(keys)):
         for j in range(len(methods)):
@@ -142,7 +142,13 @@ def plot_map(table: pd.DataFrame, path: Path, title: str) -> Path:
                 weight = "bold" if values[i, j] - (halves[i, j] if np.isfinite(halves[i, j]) else 0) > 0 else "normal"
                 ax.text(j, i, f"{values[i, j]:+.0f}{ci}", ha="center", va="center", fontsize=7, fontweight=weight)
     ax.set_xticks(range(len(methods)), [_label(m) for m in methods], rotation=30, ha="right", fontsize=8)
-    ax.set_yticks(range(len(keys)), [f"{machine} · {operator}" for machine, operator in keys], fontsize=8)
+    def alone(key: tuple[str, str], partner: str) -> str:
+        return (f"{100 * indexed.loc[(*key, partner), 'success']:.0f}%" if (*key, partner) in indexed.index
+                else "–")
+
+    ax.set_yticks(range(len(keys)), [f"{machine} · {operator} (operator {alone((machine, operator), 'operator')}, "
+                                     f"machine {alone((machine, operator), 'machine')})"
+                                     for machine, operator in keys], fontsize=8)
     fig.colorbar(image, ax=ax, label="success − better partner alone (points)")
     ax.set_title(title, fontsize=10)
     return save_figure(fig, path)

@@ -142,32 +142,32 @@ def add_sweep_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParse
     return parser
 
 
-def add_reproduce_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """The options of ``dcsc reproduce``."""
-    parser.add_argument("--quick", action="store_true", help="the same at a tiny scale (about a minute)")
-    parser.add_argument("--out", type=Path, default=None,
-                        help="results root (default results/, results/quick with --quick)")
+def _add_grid_options(parser: argparse.ArgumentParser, *, quick: str, out: str, example: str) -> argparse.ArgumentParser:
+    """The options that ``dcsc reproduce`` and ``dcsc map`` share: ``--quick``, ``--out``,
+    ``--fresh``, ``--workers`` and the overrides."""
+    parser.add_argument("--quick", action="store_true", help=quick)
+    parser.add_argument("--out", type=Path, default=None, help=out)
     parser.add_argument("--fresh", action="store_true",
                         help="delete the results of an earlier run of another config and start over")
     parser.add_argument("--workers", type=_int_at_least(1), default=2,
                         help="pretrainings / cells at a time, as Ray tasks on a local instance (default 2, "
                              "this project's 2-core machine); 1: one after another in this process, no Ray")
-    _overrides(parser, "protocol.max_steps=200 (given to both tasks)")
+    _overrides(parser, example)
     return parser
+
+
+def add_reproduce_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``dcsc reproduce``."""
+    return _add_grid_options(parser, quick="the same at a tiny scale (about a minute)",
+                             out="results root (default results/, results/quick with --quick)",
+                             example="protocol.max_steps=200 (given to both tasks)")
 
 
 def add_map_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dcsc map``."""
-    parser.add_argument("--quick", action="store_true", help="the same code paths at a tiny scale (two machines)")
-    parser.add_argument("--out", type=Path, default=None,
-                        help="the map's folder (default results/map, results/quick/map with --quick)")
-    parser.add_argument("--fresh", action="store_true",
-                        help="delete the results of an earlier run of another config and start over")
-    parser.add_argument("--workers", type=_int_at_least(1), default=2,
-                        help="pretrainings / cells at a time, as Ray tasks on a local instance (default 2); "
-                             "1: one after another in this process, no Ray")
-    _overrides(parser, "selected=[target-500] operators=[expert,surrogate_noisy]")
-    return parser
+    return _add_grid_options(parser, quick="the same code paths at a tiny scale (two machines)",
+                             out="the map's folder (default results/map, results/quick/map with --quick)",
+                             example="selected=[target-500] operators=[expert,surrogate_noisy]")
 
 
 def add_report_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
