@@ -4,8 +4,9 @@ validation success against the better partner alone, paired per scenario, with 9
 Input: the validation rows of several grids (``episodes.csv``), one per machine, with a
 ``machine`` column naming it. Output: one row per (machine, operator, method) with the
 method's success, the better partner's, their per-scenario difference and its CI
-(:func:`sharing_map`), a markdown table of the differences (:func:`map_markdown`) and a
-heatmap (:func:`plot_map`). docs/records/results.md opens with it.
+(:func:`sharing_map`), a markdown table of the differences (:func:`map_markdown`), a
+heatmap (:func:`plot_map`) and, cell by cell, which of the paper's claims hold
+(:func:`paper_claims`). docs/records/results.md opens with it.
 """
 
 from __future__ import annotations
@@ -152,3 +153,54 @@ def plot_map(table: pd.DataFrame, path: Path, title: str) -> Path:
     fig.colorbar(image, ax=ax, label="success − better partner alone (points)")
     ax.set_title(title, fontsize=10)
     return save_figure(fig, path)
+
+
+CLAIMS = ("above the machine", "above HULA", "≥ 90%", "shorter than machine and HULA", "higher return than machine and HULA")
+"""The paper's claims for DC-SC (§6: Tables 2 and 4), as :func:`paper_claims` checks them."""
+
+
+def _verdict(differences: pd.Series) -> str:
+    """``yes`` when the paired 95% CI of ``differences`` lies above 0, ``no`` when its mean is
+    not above 0, ``within CI`` between the two."""
+    mean, half = mean_ci(differences)
+    if math.isnan(mean) or mean <= 0:
+        return "no"
+    return "yes" if not math.isnan(half) and mean - half > 0 else "within CI"
+
+
+def _above_both(values: pd.DataFrame, method: str) -> str:
+    """:func:`_verdict` of ``method``'s column against both the machine's and HULA's: ``yes``
+    only where both are, ``no`` where either is."""
+    verdicts = [_verdict(values[method] - values[other]) for other in ("machine", "hula")]
+    return "yes" if all(v == "yes" for v in verdicts) else "no" if "no" in verdicts else "within CI"
+
+
+def paper_claims(episodes: pd.DataFrame, method: str) -> pd.DataFrame:
+    """Per (machine, operator), whether ``method`` meets the paper's claims (:data:`CLAIMS`)
+    on the validation scenarios, each comparison paired per scenario: success above the
+    machine alone and above HULA, a success of at least 90%, fewer steps per episode than
+    both and a higher return than both (``yes`` / ``within CI`` / ``no``; a mean of 90%
+    is ``yes`` for the third)."""
+    validation = episodes[episodes["phase"] == "validation"]
+    rows = []
+    for (machine, operator), cell in validation.groupby(["machine", "operator"], sort=False):
+        wide = {metric: cell.pivot_table(index=["pretrain_seed", "seed"], columns="method",
+                                         values=metric, aggfunc="first").astype(float)
+                for metric in ("success", "steps", "return")}
+        if not {method, "machine", "hula"} <= set(wide["success"].columns):
+            continue
+        success = wide["success"]
+        rows.append({"machine": machine, "operator": operator, "method": method,
+                     CLAIMS[0]: _verdict(success[method] - success["machine"]),
+                     CLAIMS[1]: _verdict(success[method] - success["hula"]),
+                     CLAIMS[2]: "yes" if success[method].mean() >= 0.9 else "no",
+                     CLAIMS[3]: _above_both(-wide["steps"], method), CLAIMS[4]: _above_both(wide["return"], method)})
+    return pd.DataFrame(rows, columns=["machine", "operator", "method", *CLAIMS])
+
+
+def claims_markdown(claims: pd.DataFrame) -> str:
+    """:func:`paper_claims`'s table as markdown."""
+    header = ["machine", "operator", *CLAIMS]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(row[c]) for c in header) + " |" for _, row in claims.iterrows()]
+    return "\n".join(lines) + "\n"

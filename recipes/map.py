@@ -22,7 +22,7 @@ import torch
 from omegaconf import DictConfig
 
 from dcsc_torchrl.config import ConfigError, distinct, load_config, writable_folder
-from dcsc_torchrl.methods import METHOD_NAMES
+from dcsc_torchrl.methods import METHOD_NAMES, METHODS
 from dcsc_torchrl.recipes.configs import MAP_CONFIG
 from dcsc_torchrl.recipes.grid import TaskGrid, checked_grid, run_grid
 from dcsc_torchrl.recipes.options import Parser, add_map_options
@@ -30,7 +30,13 @@ from dcsc_torchrl.recipes.reproduce import executor
 from dcsc_torchrl.recipes.settings import check_names
 from dcsc_torchrl.report import QUICK_NOTE, read_table
 from dcsc_torchrl.runlog import write_atomic
-from dcsc_torchrl.sharing_map import map_markdown, plot_map, sharing_map
+from dcsc_torchrl.sharing_map import (
+    claims_markdown,
+    map_markdown,
+    paper_claims,
+    plot_map,
+    sharing_map,
+)
 
 
 def map_config(overrides: Sequence[str] = (), *, quick: bool = False) -> DictConfig:
@@ -73,12 +79,19 @@ def write_map(out: Path, task: str, machines: Sequence[str], *, quick: bool = Fa
               if (out / name / task / "episodes.csv").is_file()]
     if not frames:
         raise ConfigError(f"--out {out}: no machine's {task}/episodes.csv there yet")
-    table = sharing_map(pd.concat(frames, ignore_index=True))
+    episodes = pd.concat(frames, ignore_index=True)
+    table = sharing_map(episodes)
     write_atomic(out / "map.csv", lambda f: table.to_csv(f, index=False))
     plot_map(table, out / "fig_map.png", f"{task}: success − the better partner alone (validation, 95% CI)")
     text = (f"# Where shared control pays: {task}\n\nEach method's validation success minus the better "
             "partner's alone, in points, paired per scenario (± 95% CI); **bold**: above both partners. "
             "Machines: `recipes/map.yaml`.\n\n" + (QUICK_NOTE + "\n" if quick else "") + map_markdown(table))
+    for method in ("dcsc_centred", "dcsc"):
+        claims = paper_claims(episodes, method)
+        if len(claims):
+            text += (f"\n## The paper's claims for {METHODS[method].label}, cell by cell\n\n"
+                     "Paired per scenario: *yes* where the 95% CI of the difference lies on the claimed side, "
+                     "*within CI* where only its mean does.\n\n" + claims_markdown(claims))
     path = out / "map.md"
     write_atomic(path, lambda f: f.write(text))
     return path

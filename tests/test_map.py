@@ -10,7 +10,7 @@ import pytest
 
 from dcsc_torchrl.cli import main
 from dcsc_torchrl.recipes.map import machine_overrides, map_config
-from dcsc_torchrl.sharing_map import sharing_map
+from dcsc_torchrl.sharing_map import paper_claims, sharing_map
 
 
 def episodes(machine: str, results: dict[str, list[int]], operator: str = "o") -> list[dict]:
@@ -76,3 +76,22 @@ def test_quick_map_writes_its_table_and_heatmap(tmp_path, monkeypatch):
     assert "A `--quick` run" in text and "| blind-500 | surrogate_noisy |" in text
     assert (out / "fig_map.png").read_bytes()[:4] == b"\x89PNG"
     assert (out / "blind-500" / "lunarlander" / "episodes.csv").exists()
+
+
+def test_the_papers_claims_are_checked_paired_per_scenario():
+    def rows(method, success, steps, ret):
+        return [{"machine": "m", "operator": "o", "pretrain_seed": 0, "phase": "validation", "seed": seed,
+                 "method": method, "success": ok, "steps": st, "return": r}
+                for seed, (ok, st, r) in enumerate(zip(success, steps, ret, strict=True))]
+
+    n = 20
+    episodes = pd.DataFrame(
+        rows("dcsc_centred", [1] * n, [100] * n, [200.0] * n)
+        + rows("machine", [0] * n, [300] * n, [-50.0] * n)
+        + rows("hula", [1] * (n - 1) + [0], [100] * n, [200.0] * (n - 1) + [150.0]))
+    claims = paper_claims(episodes, "dcsc_centred").iloc[0]
+    assert claims["above the machine"] == "yes" and claims["≥ 90%"] == "yes"
+    assert claims["above HULA"] == "within CI"  # one scenario better: its mean is above, its CI is not
+    assert claims["shorter than machine and HULA"] == "no"  # level with HULA
+    assert claims["higher return than machine and HULA"] == "within CI"
+    assert paper_claims(episodes[episodes["method"] != "hula"], "dcsc_centred").empty
