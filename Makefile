@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 QUICK ?=
 
-.PHONY: install test reproduce converged bench lint clean
+.PHONY: install test reproduce map converged bench lint clean
 
 $(VENV)/.installed: pyproject.toml
 	python3 -m venv $(VENV)
@@ -20,6 +20,11 @@ test: install
 
 reproduce: install
 	$(VENV)/bin/dcsc reproduce $(if $(QUICK),--quick,)
+
+# The map of where sharing pays (recipes/map.yaml: machines by what they observe x strength, every
+# operator preset), each machine pretrained when missing: docs/cli.md, docs/records/results.md.
+map: install
+	$(VENV)/bin/dcsc map $(if $(QUICK),--quick,)
 
 # The LunarLander protocol with a converged machine (PPO on the paper's networks until the greedy
 # machine lands >= 90% on the standard pad: docs/pretraining.md), pretrained when missing.
