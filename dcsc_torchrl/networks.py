@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
@@ -20,6 +20,28 @@ LUNAR_MACHINE_VIEWS: dict[str, int] = {"blind": 8, "target": LUNAR_OBS_DIMS}
 observation values its actor and A2C's V critic read: ``target``, all 9, the pad's x included
 (the paper's state ``s_t``, §6.1); ``blind``, the 8 standard values (the peers' goal-masked
 copilot, which sees the pilot's action instead: docs/envs.md)."""
+
+
+def machine_view(network: Mapping[str, Any]) -> str:
+    """What the machine of a checkpoint's ``network`` config observes; one written before
+    ``network.observes`` existed holds a goal-blind machine.
+
+    Examples:
+        >>> machine_view({"hidden": [64, 64]}), machine_view({"observes": "target"})
+        ('blind', 'target')
+    """
+    return network.get("observes", "blind")
+
+
+def view_recipe_settings(observes: str) -> list[str]:
+    """The pretraining recipe's settings of a machine that ``observes``: one that sees the pad
+    trains on random pads, a goal-blind one on the centre pad.
+
+    Examples:
+        >>> view_recipe_settings("target")
+        ['network.observes=target', 'env.random_pad=true']
+    """
+    return [f"network.observes={observes}", f"env.random_pad={str(observes == 'target').lower()}"]
 
 
 def lunar_machine_dims(observes: str) -> int:

@@ -319,11 +319,10 @@ class _Cell:
 
     # -- the three phases of run_cell ---------------------------------------------------
     def calibrate(self, scenarios: Scenarios, critic_net: torch.nn.Module,
-                  warmup: WarmupSettings) -> tuple[list[dict[str, Any]], torch.nn.Module, dict[str, Any]]:
-        """Phase 1: everything the other phases need, known before any row is written.
-
-        Returns the phase's rows, the critic warmed up on both partners' transitions, and
-        the cell's calibration record."""
+                  warmup: WarmupSettings) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+        """Phase 1: everything the other phases need, known before any row is written (HULA's
+        threshold, the uncertainty unit, and :attr:`critic`, warmed up on both partners'
+        transitions). Returns the phase's rows and the cell's calibration record."""
         protocol, machine = self.protocol, self.machine
         alone = self.play("operator_alone", "operator", scenarios.operator_alone, self.policy("operator"))
         if self.hula_threshold is None:
@@ -351,13 +350,13 @@ class _Cell:
                        **confidence_signal(self.uncertainty_scale, alone.frames, warm.action_gap(alone.frames),
                                            machine.lam, machine.delta2)}
         self.critic = warm.critic
-        return episodes, warm.critic, calibration
+        return episodes, calibration
 
-    def learner(self, policy: SharedPolicyModule, critic: torch.nn.Module) -> OnlineLearner:
-        """Algorithm 1's online learner of ``policy`` with its own copy of ``critic``."""
-        return make_online_learner(policy, copy.deepcopy(critic), **self.online)
+    def learner(self, policy: SharedPolicyModule) -> OnlineLearner:
+        """Algorithm 1's online learner of ``policy`` with its own copy of the warmed-up :attr:`critic`."""
+        return make_online_learner(policy, copy.deepcopy(self.critic), **self.online)
 
-    def collaborate(self, seeds: Sequence[int], critic: torch.nn.Module, methods: Sequence[str],
+    def collaborate(self, seeds: Sequence[int], methods: Sequence[str],
                     ) -> tuple[list[dict[str, Any]], dict[str, OnlineLearner], dict[str, int]]:
         """Phase 2: each learned arbiter with its own theta and critic, learning online; then
         ``dcsc_frozen`` (if validated) from the ``arbiter.form`` arbiter, its confidences frozen
@@ -369,7 +368,7 @@ class _Cell:
         learners: dict[str, OnlineLearner] = {}
         means: dict[str, tuple[float, float]] = {}
         for method in sorted(needed, key=METHOD_NAMES.index):
-            learners[method] = self.learner(self.policy(method), critic)
+            learners[method] = self.learner(self.policy(method))
             result = self.play("collaboration", method, seeds, learners[method].policy, update=learners[method])
             episodes += self.rows("collaboration", method, seeds, result)
             means[method] = (result.frames["machine_confidence"].mean().item(),
@@ -378,7 +377,7 @@ class _Cell:
         if "dcsc_frozen" in methods:
             frozen = FrozenConfidenceArbiter(copy.deepcopy(learners[frozen_source].policy["arbiter"]),
                                              *means[frozen_source])
-            learners["dcsc_frozen"] = self.learner(self.policy("dcsc_frozen", frozen), critic)
+            learners["dcsc_frozen"] = self.learner(self.policy("dcsc_frozen", frozen))
             learners["dcsc_frozen"].critic.load_state_dict(learners[frozen_source].critic.state_dict())
         return episodes, learners, updates
 
@@ -481,8 +480,8 @@ def run_cell(
     base = {"task": task.name, "operator": operator_name, "pretrain_seed": pretrain_seed}
     cell = _Cell(task, operator, machine_net, base=base, pretrain_seed=pretrain_seed, human=human, machine=machine,
                  arbiter=arbiter, online=online, protocol=protocol, progress=progress)
-    episodes, critic, calibration = cell.calibrate(scenarios, critic_net, warmup)
-    collaboration, learners, collaboration_updates = cell.collaborate(scenarios.collaboration, critic, methods)
+    episodes, calibration = cell.calibrate(scenarios, critic_net, warmup)
+    collaboration, learners, collaboration_updates = cell.collaborate(scenarios.collaboration, methods)
     validation, traces = cell.validate(scenarios.validation, methods, learners, trace=trace)
     theta = [{**base, "method": method,
               "phase": "collaboration" if h["update"] <= collaboration_updates.get(method, 0) else "validation", **h}

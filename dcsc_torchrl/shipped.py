@@ -19,7 +19,7 @@ from typing import Any
 import torch
 
 from dcsc_torchrl.checkpoint import load_checkpoint, save_checkpoint
-from dcsc_torchrl.networks import machine_from_checkpoint
+from dcsc_torchrl.networks import machine_from_checkpoint, view_recipe_settings
 from dcsc_torchrl.task import Task
 
 SHIPPED_DIR = Path(__file__).parent / "pretrained"
@@ -64,7 +64,7 @@ def export_machine(task: Task, checkpoint: str | Path, out: str | Path | None = 
     data = load_checkpoint(checkpoint, task=task.name)
     actor, _ = machine_from_checkpoint(data, task)
     observes = data["config"]["network"].get("observes")
-    view = f" network.observes={observes} env.random_pad={str(observes == 'target').lower()}" if observes else ""
+    view = "".join(f" {setting}" for setting in view_recipe_settings(observes)) if observes else ""
     names = task.checkpoint_modules
     payload: dict[str, Any] = {
         "state": {name: data["state"][name] for name in names},

@@ -93,10 +93,10 @@ def _lunar_networks(network: Mapping[str, Any]) -> tuple[nn.Module, nn.Module]:
         lunar_actor,
         lunar_critic,
         lunar_machine_dims,
+        machine_view,
     )
 
-    # a checkpoint written before network.observes existed holds a goal-blind machine
-    obs_dims = lunar_machine_dims(network.get("observes", "blind"))
+    obs_dims = lunar_machine_dims(machine_view(network))
     return (lunar_actor(network["hidden"], network["actor_dropout"], obs_dims=obs_dims),
             lunar_critic(network["hidden"], 4, obs_dims=LUNAR_QVALUE_DIMS))
 

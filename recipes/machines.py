@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 
 from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
 from dcsc_torchrl.config import ConfigError
-from dcsc_torchrl.networks import machine_from_checkpoint
+from dcsc_torchrl.networks import machine_from_checkpoint, machine_view
 from dcsc_torchrl.recipes.settings import pretrain_config
 from dcsc_torchrl.tasks import Task
 
@@ -40,8 +40,7 @@ def load_machine_checkpoint(task: Task, cfg: DictConfig, path: Path) -> dict:
     than ``pretrain.observes`` asks for (both named)."""
     data = load_checkpoint(path, task=task.name, modules=task.checkpoint_modules)
     want = cfg.pretrain.get("observes")
-    # a checkpoint written before network.observes existed holds a goal-blind machine
-    have = data["config"].get("network", {}).get("observes", "blind")
+    have = machine_view(data["config"].get("network", {}))
     if want is not None and have != want:
         raise ConfigError(f"{path} holds a machine that observes {have!r}, but pretrain.observes is {want!r}: "
                           f"pretrain one into another pretrain.out_dir, or set pretrain.observes={have}")

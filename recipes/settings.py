@@ -15,7 +15,7 @@ from dcsc_torchrl.config import (
     load_config,
 )
 from dcsc_torchrl.humans.traits import PRESETS
-from dcsc_torchrl.networks import LUNAR_MACHINE_VIEWS
+from dcsc_torchrl.networks import LUNAR_MACHINE_VIEWS, view_recipe_settings
 from dcsc_torchrl.online import check_online_settings
 from dcsc_torchrl.protocol import (
     ArbiterSettings,
@@ -76,7 +76,7 @@ def view_settings(cfg: DictConfig) -> list[str]:
     observes = cfg.pretrain.get("observes")
     if observes is None:
         return []
-    return [f"network.observes={observes}", f"env.random_pad={str(observes == 'target').lower()}"]
+    return view_recipe_settings(observes)
 
 
 def _human_settings(**group: Any) -> dict[str, Any]:

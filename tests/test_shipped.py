@@ -7,6 +7,7 @@ import torch
 
 from dcsc_torchrl.cli import main
 from dcsc_torchrl.config import load_config
+from dcsc_torchrl.networks import view_recipe_settings
 from dcsc_torchrl.recipes.configs import CONFIGS
 from dcsc_torchrl.recipes.machines import PRETRAINING
 from dcsc_torchrl.shipped import greedy_return, load_shipped, shipped_machine, shipped_path
@@ -23,8 +24,7 @@ SHIPPED = [("lunarlander", None), ("lunarlander", "target"), ("uav", None)]
 
 def view_settings(observes: str | None) -> list[str]:
     """The recipe settings of a machine that ``observes`` (none for the default file)."""
-    return [] if observes is None else [f"network.observes={observes}",
-                                        f"env.random_pad={str(observes == 'target').lower()}"]
+    return [] if observes is None else view_recipe_settings(observes)
 
 
 def shipped_command(name: str, observes: str | None) -> str:
