@@ -360,6 +360,33 @@ def test_simulated_operator_rejects_a_bad_grid():
         SimulatedOperator(lookahead_noise=-0.1)
 
 
+def test_the_compiled_look_ahead_scores_as_the_torch_rollouts_do():
+    """The host's compiled loop (float64) and the device path's torch operations (float32)
+    score every candidate of real mid-flight states alike, to float32 rounding, and pick
+    the same candidate wherever the best is not a near tie."""
+    operator = SimulatedOperator.from_preset("expert")
+    operator.reset(3)
+    env = make_uav_env(12, scenario_seeds=list(range(12)))
+    td = env.reset()
+    states = []
+    for step in range(60):  # fly toward the goal through the obstacles, keep a state every 5 frames
+        td["action"] = torch.full((12, 3), 1.5)
+        td = env.step(td)["next"]
+        if step % 5 == 0:
+            states.append(td.select(*operator.in_keys).clone())
+    query = torch.cat(states)
+    compiled = operator.score(query)
+    centres, velocities, radii = operator.predicted_obstacles(query)
+    reference = operator.rollout_scores(query["position"], query["goal"], centres, radii, velocities)
+    assert compiled.shape == reference.shape == (len(query), operator.n_choices)
+    scale = reference.abs().clamp_min(1.0)
+    assert ((compiled - reference).abs() / scale).max() < 1e-4
+    top2 = reference.topk(2, dim=-1).values
+    clear = (top2[:, 0] - top2[:, 1]) > 1e-3
+    assert clear.sum() > len(query) // 2
+    assert compiled.argmax(-1)[clear].equal(reference.argmax(-1)[clear])
+
+
 def test_simulated_operator_look_ahead_error_is_a_velocity_error_of_the_set_size():
     operator = SimulatedOperator(lookahead_noise=0.3)
     operator.reset(0)

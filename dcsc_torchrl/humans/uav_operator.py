@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 
@@ -18,6 +19,7 @@ from dcsc_torchrl.envs.uav import (
     obstacle_states,
 )
 from dcsc_torchrl.humans.decision_loop import SimulatedHuman
+from dcsc_torchrl.humans.lookahead import lookahead_scores
 from dcsc_torchrl.humans.streams import _GOLDEN, _mix, _shift_right, _signed
 from dcsc_torchrl.humans.traits import PRESETS, OperatorTraits
 
@@ -35,8 +37,9 @@ class SimulatedOperator(SimulatedHuman):
     At a decision it tries every (rho0, sigma0, tau) of a small grid by rolling the
     IIFDS flow (:func:`dcsc_torchrl.envs.iifds.iifds_step`) forward ``horizon`` steps against the
     obstacles' predicted positions (:func:`dcsc_torchrl.envs.uav.obstacle_states` of the env's
-    ``obstacle_params`` at ``time + h * DT``), batched over envs x candidates, and keeps
-    the best score. Its foresight is imperfect: it sees each obstacle ``k`` moving with
+    ``obstacle_params`` at ``time + h * DT``), every env x candidate at once (on the host one
+    compiled loop, :mod:`dcsc_torchrl.humans.lookahead`; on a device torch operations,
+    :meth:`rollout_scores`), and keeps the best score. Its foresight is imperfect: it sees each obstacle ``k`` moving with
     the velocity error ``e_k ~ N(0, lookahead_noise^2 I)`` (m/s), redrawn at every
     decision, so the centre it predicts ``s`` seconds ahead is ``c_k(t + s) + e_k s``,
     off by ``lookahead_noise * s * sqrt(3)`` on average: the farther ahead, the worse::
@@ -135,20 +138,43 @@ class SimulatedOperator(SimulatedHuman):
         z = torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * torch.pi * u2)
         return (self.lookahead_noise * z).to(params.dtype)
 
-    def score(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """Scores of every grid action for every env of a flat batch, ``[N, G]``."""
-        position, goal = tensordict.get("position"), tensordict.get("goal")
-        params, now = tensordict.get("obstacle_params"), tensordict.get("time")
-        n_envs, device = position.shape[0], position.device
-        grid = self.grid.to(device)
-        shape = (n_envs, self.n_choices)
-        steps = torch.arange(self.horizon + 1, device=device, dtype=now.dtype)
-        # obstacles at time + h DT for h = 0..horizon: [N, H+1, K, 3] and [N, H+1, K]
-        centres, velocities, radii = obstacle_states(params.unsqueeze(1), now + DT * steps)
+    def predicted_obstacles(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The obstacles as the operator foresees them at ``time + h DT``, ``h = 0..horizon``: centres and
+        velocities ``[N, horizon + 1, K, 3]`` (off by :meth:`prediction_error`), radii ``[N, horizon + 1, K]``."""
+        now = tensordict.get("time")
+        steps = torch.arange(self.horizon + 1, device=now.device, dtype=now.dtype)
+        centres, velocities, radii = obstacle_states(tensordict.get("obstacle_params").unsqueeze(1), now + DT * steps)
         if self.lookahead_noise > 0:
             error = self.prediction_error(tensordict).unsqueeze(1)  # [N, 1, K, 3]
             centres = centres + error * (DT * steps)[None, :, None, None]
             velocities = velocities + error
+        return centres, velocities, radii
+
+    def score(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """Scores of every grid action for every env of a flat batch, ``[N, G]``."""
+        position, goal = tensordict.get("position"), tensordict.get("goal")
+        centres, velocities, radii = self.predicted_obstacles(tensordict)
+        if position.device.type != "cpu":
+            return self.rollout_scores(position, goal, centres, radii, velocities)
+        # on the host, one compiled loop: the same equations in float64 (dcsc_torchrl.humans.lookahead)
+        host = [x.detach().double().contiguous().numpy() for x in (position, goal, centres, radii, velocities, self.grid)]
+        scores = lookahead_scores(*host, DT, np.array(ARENA_LOW), np.array(ARENA_HIGH), GOAL_RADIUS,
+                                  self.clearance_margin, self.clearance_weight, self.collision_penalty)
+        return torch.from_numpy(scores).to(position.dtype)
+
+    def rollout_scores(self, position: torch.Tensor, goal: torch.Tensor, centres: torch.Tensor, radii: torch.Tensor,
+                       velocities: torch.Tensor) -> torch.Tensor:
+        """:meth:`score` as torch operations batched over envs x candidates, ``[N, G]``: the path on a
+        device (on the host :meth:`score` runs the compiled loop, tested against this).
+
+        Args:
+            position, goal: ``[N, 3]``.
+            centres, velocities: the obstacles predicted at ``time + h DT``, ``[N, horizon + 1, K, 3]``.
+            radii: ``[N, horizon + 1, K]``.
+        """
+        n_envs, device = position.shape[0], position.device
+        grid = self.grid.to(device)
+        shape = (n_envs, self.n_choices)
         rho0, sigma0, tau = (column.expand(shape) for column in grid.T)
         goal = goal.unsqueeze(1).expand(*shape, 3)
         arena_low = torch.tensor(ARENA_LOW, device=device)
