@@ -98,6 +98,7 @@ LIMITS: dict[str, Range] = {
     "loss.critic_coeff": NON_NEGATIVE,
     "loss.reward_scale": POSITIVE,
     "train.episodes": COUNT,
+    "train.frames": NON_NEGATIVE,
     "train.checkpoint_every": COUNT,
     "train.stop_success": UNIT,
     "train.stop_eval_episodes": COUNT,

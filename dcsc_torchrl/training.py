@@ -144,8 +144,8 @@ def greedy_episodes(
     return first_episodes(rollout, extra_keys)
 
 
-RESUMABLE_CHANGES = ("logger.out_dir", "threads", "train.episodes", "train.stop_success", "train.stop_eval_episodes",
-                     "train.keep_best")
+RESUMABLE_CHANGES = ("logger.out_dir", "threads", "train.episodes", "train.frames", "train.stop_success",
+                     "train.stop_eval_episodes", "train.keep_best")
 """Config keys a resumed run may change: where it writes, its threads, its budget (and what it keeps)."""
 
 
@@ -157,6 +157,8 @@ class TrainingRun:
         out_dir: the run's folder (``train.csv``, ``checkpoint.pt``, ``learning_curve.png``).
         episodes: the episode budget.
         checkpoint_every: episodes per segment (a checkpoint closes each).
+        frames: a frame budget besides (0: none): training also ends, mid-segment, once
+            this many frames are collected (the budget of a peer that counts frames).
         seed: the run's seed (each segment's env seed derives from it).
         config: the run's whole config as plain data: stored in every checkpoint, and a
             resume with another one is refused (but :data:`RESUMABLE_CHANGES`).
@@ -176,6 +178,7 @@ class TrainingRun:
         config: Mapping[str, Any],
         columns: list[str],
         stateful: Mapping[str, Any],
+        frames: int = 0,
     ) -> None:
         if columns[:2] != ["episode", "frames"]:
             raise ValueError(f"columns must start with ['episode', 'frames'], got {columns[:2]}")
@@ -185,6 +188,9 @@ class TrainingRun:
         self.out_dir = Path(out_dir)
         self.total_episodes = int(episodes)
         self.checkpoint_every = int(checkpoint_every)
+        self.total_frames = int(frames)
+        if self.total_frames < 0:
+            raise ValueError(f"train.frames must be >= 0 (0: no frame budget), got {frames}")
         if self.total_episodes < 1 or self.checkpoint_every < 1:
             raise ValueError(
                 f"train.episodes and train.checkpoint_every must be >= 1, got "
@@ -246,7 +252,13 @@ class TrainingRun:
     # -- the loop -------------------------------------------------------------------
     @property
     def done(self) -> bool:
-        return self.episodes >= self.total_episodes
+        return self.episodes >= self.total_episodes or 0 < self.total_frames <= self.frames
+
+    @property
+    def progress(self) -> float:
+        """The share of the budget spent, in [0, 1]: of the episodes, or of the frames when that is further."""
+        spent = self.episodes / self.total_episodes
+        return min(1.0, max(spent, self.frames / self.total_frames) if self.total_frames else spent)
 
     def segment_seed(self) -> int:
         """The env seed of the current segment (fresh, distinct per segment)."""

@@ -59,13 +59,14 @@ CONFIG = CONFIGS["lunarlander"].pretrain
 COLUMNS = ["episode", "frames", "return", "steps", "success",
            "loss_objective", "loss_critic", "loss_entropy", "loss_qvalue"]
 LR_SCHEDULES = ("constant", "linear")  # optim.lr_schedule: Table A1's constant lr, or linear to 0 over the budget
+OPTIMIZERS = ("adam", "rmsprop")  # optim.name: Adam, or RMSprop as Stable-Baselines3's A2C (alpha 0.99, eps optim.eps)
 NETWORK_INITS = ("default", "orthogonal")  # network.init: PyTorch's, or orthogonal (small policy head)
 ALGORITHMS = ("a2c", "ppo")  # loss.algorithm: Table A1's A2C, or clipped PPO on the same networks
 
 
 def make_actor_critic(cfg: DictConfig, actor_net: torch.nn.Module, value_net: torch.nn.Module,
              action_spec: TensorSpec) -> tuple[ProbabilisticActor, A2CLoss | ClipPPOLoss, torch.optim.Optimizer]:
-    """The actor-critic part of the recipe: the sampling actor, its loss with GAE, and its Adam.
+    """The actor-critic part of the recipe: the sampling actor, its loss with GAE, and its optimiser.
 
     ``cfg.loss`` and ``cfg.optim`` are read (Table A1's values plus what it leaves open);
     ``loss.algorithm`` picks ``A2CLoss`` or ``ClipPPOLoss`` (clip ``ppo.clip_epsilon``),
@@ -86,7 +87,10 @@ def make_actor_critic(cfg: DictConfig, actor_net: torch.nn.Module, value_net: to
     else:
         loss = A2CLoss(actor, critic, **terms)
     loss.make_value_estimator(ValueEstimators.GAE, gamma=cfg.loss.gamma, lmbda=cfg.loss.gae_lambda)
-    optim = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps)
+    if cfg.optim.name == "rmsprop":
+        optim = torch.optim.RMSprop(loss.parameters(), lr=cfg.optim.lr, alpha=0.99, eps=cfg.optim.eps)
+    else:
+        optim = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps)
     return actor, loss, optim
 
 
@@ -135,6 +139,8 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     ``resume``); returns the learning curve's PNG."""
     if cfg.optim.lr_schedule not in LR_SCHEDULES:
         raise ConfigError(f"optim.lr_schedule: expected one of {', '.join(LR_SCHEDULES)}, got {cfg.optim.lr_schedule!r}")
+    if cfg.optim.name not in OPTIMIZERS:
+        raise ConfigError(f"optim.name: expected one of {', '.join(OPTIMIZERS)}, got {cfg.optim.name!r}")
     try:
         lunar_machine_dims(cfg.network.observes)
     except ValueError as err:
@@ -164,9 +170,9 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.qcritic.buffer_size), batch_size=cfg.qcritic.batch_size)
 
     def update(batch) -> dict[str, float]:
-        if cfg.optim.lr_schedule == "linear":  # to 0 over the episode budget (resumes from run.episodes)
+        if cfg.optim.lr_schedule == "linear":  # to 0 over the budget (resumes from the run's count)
             for group in optim.param_groups:
-                group["lr"] = cfg.optim.lr * (1.0 - run.episodes / run.total_episodes)
+                group["lr"] = cfg.optim.lr * (1.0 - run.progress)
         buffer.extend(batch.reshape(-1).select(*q_loss.in_keys, strict=False).clone())  # what the Q loss reads; env-scale rewards
         metrics = actor_critic_step(cfg, actor_critic_loss, optim, batch)
         for _ in range(cfg.qcritic.updates_per_batch):  # >= 1 (dcsc_torchrl.config.LIMITS)
@@ -179,7 +185,8 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
 
     # --- training, in checkpointed segments ---------------------------------------------
     run = TrainingRun(
-        "lunarlander", out_dir=cfg.logger.out_dir, episodes=cfg.train.episodes, checkpoint_every=cfg.train.checkpoint_every,
+        "lunarlander", out_dir=cfg.logger.out_dir, episodes=cfg.train.episodes, frames=cfg.train.frames,
+        checkpoint_every=cfg.train.checkpoint_every,
         seed=cfg.seed, config=to_plain(cfg), columns=COLUMNS,
         stateful={"actor": actor_net, "value": value_net, "qvalue": qvalue_net, "q_loss": q_loss,
                   "optim": optim, "q_optim": q_optim, "buffer": buffer},

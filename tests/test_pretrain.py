@@ -179,6 +179,24 @@ def test_the_linear_learning_rate_falls_to_zero_over_the_episode_budget(tmp_path
     assert 0 < before_last_update < 6 and lr == pytest.approx(5e-4 * (1 - before_last_update / 6))
 
 
+def test_a_frame_budget_ends_training_mid_segment_and_drives_the_linear_learning_rate(tmp_path):
+    # the quick recipe: 2 envs x 5 frames a batch, 6 episodes; 300 frames end it first
+    run_recipe("lunarlander", tmp_path, "train.frames=300", "train.episodes=1000", "optim.lr_schedule=linear")
+    log = pd.read_csv(tmp_path / "train.csv")
+    data = load_checkpoint(tmp_path / "checkpoint.pt", task="lunarlander")
+    assert data["frames"] == 300 and data["episodes"] == len(log) < 1000
+    # the last update ran with 290 of 300 frames spent: lr = 5e-4 * (1 - 290 / 300)
+    assert data["state"]["optim"]["param_groups"][0]["lr"] == pytest.approx(5e-4 * 10 / 300)
+
+
+def test_the_rmsprop_optimiser_is_the_one_trained_with(tmp_path):
+    run_recipe("lunarlander", tmp_path, "optim.name=rmsprop", "optim.eps=1.0e-5")
+    group = load_checkpoint(tmp_path / "checkpoint.pt", task="lunarlander")["state"]["optim"]["param_groups"][0]
+    assert group["alpha"] == 0.99 and group["eps"] == 1e-5
+    with pytest.raises(ConfigError, match="optim.name: expected one of adam, rmsprop, got 'sgd'"):
+        run_recipe("lunarlander", tmp_path, "optim.name=sgd")
+
+
 def test_an_unknown_lr_schedule_is_refused(tmp_path):
     with pytest.raises(ConfigError, match="optim.lr_schedule"):
         run_recipe("lunarlander", tmp_path, "optim.lr_schedule=cosine")
