@@ -109,6 +109,22 @@ def _sum_slack(dtype: torch.dtype) -> float:
     return float(f"{torch.finfo(dtype).eps ** 0.5:.1e}") if dtype.is_floating_point else 0.0
 
 
+class OneHotMixture(OneHotCategorical):
+    """Eq. 14's mixture over the keys as TorchRL's ``OneHotCategorical``, with a mode that is one key.
+
+    TorchRL's ``mode`` marks every key tied for the largest logit. Eq. 14 ties two keys
+    exactly where ``beta = 1/2`` meets a machine sure of a key other than the operator's
+    (both get probability 1/2), and that mode is a two-hot "action": the env pressed its
+    first key, a critic's loss refused it. Here the mode is that first key alone (the
+    same key wherever there is no tie); sampling is TorchRL's.
+    """
+
+    @property
+    def mode(self) -> torch.Tensor:
+        logits = self.logits  # what TorchRL's mode compares
+        return torch.nn.functional.one_hot(logits.argmax(-1), logits.shape[-1])
+
+
 def plays_operator_alone(beta: float, *, discrete: bool, mode: bool) -> bool:
     """Whether Eq. 14 at a constant ``beta`` acts exactly as the operator alone, on every frame.
 
@@ -139,7 +155,8 @@ class SharedPolicyModule(TensorDictSequential):
     - ``arbiter``: any :class:`~dcsc_torchrl.arbiters.Arbiter` (Eqs. 15, 18);
     - ``blend``: :class:`PolicyBlend` (Eq. 14);
     - discrete only, ``sample``: a probabilistic module drawing the one-hot ``action``
-      from ``OneHotCategorical(probs)`` (Algorithm 1, line 7: actions are sampled).
+      from :class:`OneHotMixture` ``(probs)`` (Algorithm 1, line 7: actions are sampled; with
+      ``ExplorationType.MODE`` its most likely key, the first of tied ones).
 
     Discrete when ``action_spec`` is ``OneHot`` (the machine must output ``"probs"``);
     continuous when it is ``Bounded`` (the machine outputs ``"action"``, the blend is
@@ -216,7 +233,7 @@ class SharedPolicyModule(TensorDictSequential):
             parts["sample"] = ProbabilisticTensorDictModule(
                 in_keys=["probs"],
                 out_keys=[action_key],
-                distribution_class=OneHotCategorical,
+                distribution_class=OneHotMixture,
                 default_interaction_type=InteractionType.RANDOM,
             )
         elif isinstance(action_spec, Bounded):

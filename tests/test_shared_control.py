@@ -192,6 +192,37 @@ def test_plays_operator_alone_holds_even_when_the_machine_puts_all_its_mass_on_a
         assert plays_operator_alone(beta, discrete=True, mode=True) == (action == human).all().item(), beta
 
 
+def test_the_mode_of_a_tied_mixture_is_one_key_the_first():
+    """At beta = 1/2 against a machine certain of key 0 (p_m exactly (1, 0, 0, 0)), the operator's
+    key and key 0 tie at 1/2. TorchRL's mode marked both (a two-hot action, refused by the
+    critic's loss: a LunarLander cell of the full run failed on it); the mode is key 0 alone."""
+    from tensordict import TensorDict
+    from torchrl.data import OneHot
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from dcsc_torchrl.arbiters import ConstantArbiter
+    from dcsc_torchrl.machine import MCDropoutPolicy
+    from dcsc_torchrl.policy import OneHotMixture, SharedPolicyModule, check_distribution
+
+    net = torch.nn.Sequential(torch.nn.Linear(9, 8), torch.nn.Dropout(0.1), torch.nn.Linear(8, 4))
+    with torch.no_grad():  # the hidden layer is 0 whatever dropout draws: p_m = (1, 0, 0, 0) on every sample
+        for layer in (net[0], net[2]):
+            layer.weight.zero_()
+            layer.bias.zero_()
+        net[2].bias.copy_(torch.tensor([100.0, -100.0, -100.0, -100.0]))
+    human = torch.eye(4)[torch.arange(8) % 3 + 1].long()
+    frames = TensorDict({"observation": torch.randn(8, 9), "human_action": human,
+                         "human_confidence": torch.rand(8, 1)}, [8])
+    policy = SharedPolicyModule(MCDropoutPolicy(net, num_samples=4), ConstantArbiter(0.5, 1), OneHot(4))
+    with set_exploration_type(ExplorationType.MODE):
+        out = policy(frames)
+    assert (out["probs"].max(-1).values == 0.5).all() and (out["machine_probs"][:, 0] == 1).all()
+    assert out["action"].equal(torch.eye(4, dtype=torch.long)[[0] * 8])
+    check_distribution("action", out["action"])
+    untied = torch.tensor([[0.1, 0.6, 0.2, 0.1]])
+    assert OneHotMixture(probs=untied).mode.equal(torch.tensor([[0, 1, 0, 0]]))
+
+
 def test_a_constant_beta_that_plays_the_operator_alone_takes_the_operators_episodes():
     """The operator's episodes reused for the sweep's beta 0 and 0.3 are the rows playing them gives."""
     from dcsc_torchrl.protocol import run_cell
