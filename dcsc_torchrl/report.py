@@ -190,6 +190,21 @@ def summary_table(frame: pd.DataFrame, task: Task, by: str | None = None) -> str
     return "\n".join(lines)
 
 
+def success_grid(frame: pd.DataFrame, task: Task) -> str:
+    """Success in percent, one row per method and one column per operator preset, ``mean ± 95% CI``
+    over the pooled pretraining seeds (the compact table of README and docs/records/results.md)."""
+    operators = sorted(frame["operator"].unique())
+    lines = ["| method | " + " | ".join(operators) + " |", "|---|" + "---:|" * len(operators)]
+    for method in _methods(frame):
+        cells = []
+        for operator in operators:
+            mean, half = mean_ci(frame.loc[(frame["method"] == method) & (frame["operator"] == operator), "success"])
+            cells.append("–" if math.isnan(mean) else f"{100 * mean:.0f}" + (
+                "" if math.isnan(half) else f" ± {100 * half:.0f}"))
+        lines.append(f"| {method_label(task, method)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def write_task_summary(results_dir: str | os.PathLike, task: Task, main_operator: str, main_seed: int, *,
                        quick: bool = False) -> Path:
     """``summary.md`` of one task: the paper's table (main operator, first pretraining seed),
@@ -211,6 +226,9 @@ def write_task_summary(results_dir: str | os.PathLike, task: Task, main_operator
         "\n## Per group of scenarios (paper Figs. 2 / 4)\n",
         summary_table(main, task, by="group"),
         "\n## Every operator preset, pooled over pretraining seeds\n",
+        "Success (%), mean ± 95% CI:\n",
+        success_grid(val, task),
+        "",
         summary_table(val, task, by="operator"),
         "\n## Every pretraining seed, pooled over presets\n",
         summary_table(val, task, by="pretrain_seed"),

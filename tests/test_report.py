@@ -5,7 +5,8 @@ from __future__ import annotations
 import pandas as pd
 import pytest
 
-from dcsc_torchrl.report import partner_overlap, with_best_constant
+from dcsc_torchrl.report import Z95, method_label, partner_overlap, success_grid, with_best_constant
+from dcsc_torchrl.tasks import get_task
 
 
 def _rows(method: str, successes: list[int], operator: str = "expert", **extra) -> list[dict]:
@@ -36,3 +37,14 @@ def test_best_constant_keeps_the_rows_of_the_best_beta_per_cell():
     kept = best[best["method"] == "best_constant"]
     assert set(kept["constant_beta"]) == {0.5}
     assert len(kept) == 2 and "constant" not in set(best["method"])
+
+
+def test_the_success_grid_is_methods_by_operators_in_percent_with_their_ci():
+    task = get_task("lunarlander")
+    rows = _rows("operator", [1, 1, 1, 1]) + _rows("operator", [1, 0, 1, 0], operator="noisy")
+    rows += _rows("machine", [0], operator="noisy")
+    table = success_grid(pd.DataFrame(rows), task).splitlines()
+    half = 100 * Z95 * pd.Series([1, 0, 1, 0]).std() / 2
+    assert table == ["| method | expert | noisy |", "|---|---:|---:|",
+                     f"| {method_label(task, 'machine')} | – | 0 |",
+                     f"| {method_label(task, 'operator')} | 100 ± 0 | 50 ± {half:.0f} |"]
