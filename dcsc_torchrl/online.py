@@ -72,7 +72,7 @@ class OnlineLearner(ABC):
         self.loss = self._make_loss(policy, critic)
         self.targets = SoftUpdate(self.loss, tau=tau) if self.soft_updated else None
         self.theta_optim = THETA_OPTIMIZERS[theta_optimizer]([policy["arbiter"].theta], lr=theta_lr)
-        self.critic_optim = torch.optim.Adam(list(self.critic_params.values(True, True)), lr=critic_lr)
+        self.critic_optim = torch.optim.Adam(list(self.critic_params.values(True, True)), lr=critic_lr, foreach=True)
         self.history: list[dict[str, Any]] = []
 
     # -- what each action kind defines ----------------------------------------------------
@@ -130,7 +130,7 @@ class OnlineLearner(ABC):
         frames = frames.reshape(-1)
         returns = returns_to_go(frames, self.gamma) if target == "return" else None
         generator = torch.Generator().manual_seed(seed)
-        optim = torch.optim.Adam(self.critic_optim.param_groups[0]["params"], lr=lr)
+        optim = torch.optim.Adam(self.critic_optim.param_groups[0]["params"], lr=lr, foreach=True)
         loss = torch.tensor(float("nan"))
         for _ in range(updates):
             index = torch.randint(frames.shape[0], (min(batch_size, frames.shape[0]),), generator=generator)

@@ -88,9 +88,9 @@ def make_actor_critic(cfg: DictConfig, actor_net: torch.nn.Module, value_net: to
         loss = A2CLoss(actor, critic, **terms)
     loss.make_value_estimator(ValueEstimators.GAE, gamma=cfg.loss.gamma, lmbda=cfg.loss.gae_lambda)
     if cfg.optim.name == "rmsprop":
-        optim = torch.optim.RMSprop(loss.parameters(), lr=cfg.optim.lr, alpha=0.99, eps=cfg.optim.eps)
+        optim = torch.optim.RMSprop(loss.parameters(), lr=cfg.optim.lr, alpha=0.99, eps=cfg.optim.eps, foreach=True)
     else:
-        optim = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps)
+        optim = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps, foreach=True)
     return actor, loss, optim
 
 
@@ -166,7 +166,7 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     # --- the Q critic's loss, optimiser and replay buffer -------------------------------
     q_loss = QCriticLoss(qvalue, gamma=cfg.loss.gamma)
     q_target = SoftUpdate(q_loss, tau=cfg.qcritic.tau)
-    q_optim = torch.optim.Adam(q_loss.parameters(), lr=cfg.qcritic.lr)
+    q_optim = torch.optim.Adam(q_loss.parameters(), lr=cfg.qcritic.lr, foreach=True)
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.qcritic.buffer_size), batch_size=cfg.qcritic.batch_size)
 
     def update(batch) -> dict[str, float]:

@@ -69,8 +69,8 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     loss = DDPGLoss(actor, critic, delay_actor=True, delay_value=True)
     loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.loss.gamma)
     targets = SoftUpdate(loss, eps=cfg.loss.polyak)
-    actor_optim = torch.optim.Adam(loss.actor_network_params.values(True, True), lr=cfg.optim.actor_lr)
-    critic_optim = torch.optim.Adam(loss.value_network_params.values(True, True), lr=cfg.optim.critic_lr)
+    actor_optim = torch.optim.Adam(loss.actor_network_params.values(True, True), lr=cfg.optim.actor_lr, foreach=True)
+    critic_optim = torch.optim.Adam(loss.value_network_params.values(True, True), lr=cfg.optim.critic_lr, foreach=True)
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.optim.buffer_size, device=device),
                           batch_size=cfg.optim.batch_size)
 
