@@ -11,6 +11,9 @@ rule          fixed     :class:`RuleArbiter` on the task's hand-written switch
 ida           fixed     :class:`InterventionArbiter` (IDA): the machine acts where the
                         cell's critic (Algorithm 1's Q, after its warm-up) rates its
                         action above the operator's
+ida_expert    fixed     the same rule on an expert's Q given to the cell (IDA as its
+                        paper runs it, e.g. a converged machine's critic); run only
+                        when named, with the expert given
 dcsc          learned   :class:`ConfidenceArbiter` (Eq. 15 as printed), theta learned online
 dcsc_centred  learned   :class:`CentredConfidenceArbiter`, theta learned online
 dcsc_frozen   frozen    a learned arbiter fed its confidences' collaboration means
@@ -56,12 +59,15 @@ class Method:
             learning online), ``frozen`` (the ablation of a learned arbiter) or ``sweep``
             (once per constant beta).
         form: the arbiter form of a learned method (``paper`` or ``centred``).
+        default: whether a run with no method list runs it (``ida_expert`` needs an input
+            the protocol does not make, an expert's Q, so it runs only when named).
     """
 
     name: str
     label: str
     kind: str
     form: str | None = None
+    default: bool = True
 
 
 METHODS: dict[str, Method] = {
@@ -72,6 +78,7 @@ METHODS: dict[str, Method] = {
         Method("hula", "HULA", "fixed"),
         Method("rule", "rule-based switch", "fixed"),
         Method("ida", "IDA (Algorithm 1's Q)", "fixed"),
+        Method("ida_expert", "IDA (an expert's Q)", "fixed", default=False),
         Method("dcsc", "DC-SC (Eq. 15)", "learned", form="paper"),
         Method("dcsc_centred", "DC-SC (centred)", "learned", form="centred"),
         Method("dcsc_frozen", "DC-SC, confidences frozen", "frozen"),
@@ -80,12 +87,14 @@ METHODS: dict[str, Method] = {
 }
 """Every method, in the order of the protocol and the report."""
 METHOD_NAMES = tuple(METHODS)
+DEFAULT_METHODS = tuple(name for name, method in METHODS.items() if method.default)
+"""The methods a run with no method list runs (every method but ``ida_expert``)."""
 BEST_CONSTANT = Method("best_constant", "best constant β (oracle)", "oracle")
 """The report's row for the sweep's best beta (picked on the scenarios it is scored on)."""
 ARBITER_FORMS = tuple(m.form for m in METHODS.values() if m.kind == "learned")
 
 
-def task_methods(task: Task, methods: Sequence[str] = METHOD_NAMES) -> tuple[str, ...]:
+def task_methods(task: Task, methods: Sequence[str] = DEFAULT_METHODS) -> tuple[str, ...]:
     """``methods`` that ``task`` defines: all of them, less ``rule`` for a task without an
     :attr:`~dcsc_torchrl.tasks.Task.authority_rule`.
 
@@ -99,7 +108,7 @@ def task_methods(task: Task, methods: Sequence[str] = METHOD_NAMES) -> tuple[str
 
 def check_task_methods(task: Task, methods: Sequence[str]) -> None:
     """Refuses ``methods`` that ``task`` does not define (``rule`` without an authority rule)."""
-    undefined = [m for m in methods if m not in task_methods(task)]
+    undefined = [m for m in methods if m not in task_methods(task, METHOD_NAMES)]
     if undefined:
         raise ValueError(f"task {task.name} does not define method(s) {', '.join(undefined)}: it has no authority rule")
 
@@ -122,6 +131,7 @@ def make_arbiter(
     constant_beta: float | None = None,
     rule: Callable[[torch.Tensor], torch.Tensor] | None = None,
     q_value: torch.nn.Module | None = None,
+    expert_q: torch.nn.Module | None = None,
     discrete: bool = True,
 ) -> Arbiter:
     """The arbiter that makes ``method`` out of the common pipeline (``action_dims`` betas).
@@ -131,7 +141,8 @@ def make_arbiter(
     :class:`HULAArbiter` of ``hula_threshold``, ``constant`` a :class:`ConstantArbiter`
     of ``constant_beta``, ``rule`` a :class:`RuleArbiter` of ``rule`` (a task's
     ``authority_rule``), ``ida`` an :class:`InterventionArbiter` on a frozen copy of
-    ``q_value`` (``discrete``: whether it gives a value per key). ``dcsc_frozen`` wraps a learned arbiter
+    ``q_value`` (``discrete``: whether it gives a value per key), ``ida_expert`` the same on
+    ``expert_q``. ``dcsc_frozen`` wraps a learned arbiter
     (:class:`FrozenConfidenceArbiter`), so the protocol builds it.
     """
     from dcsc_torchrl import arbiters
@@ -148,10 +159,12 @@ def make_arbiter(
         if rule is None:
             raise ValueError("the rule arbiter needs a rule: the task's authority_rule (this task has none)")
         return arbiters.RuleArbiter(rule, action_dims)
-    if method == "ida":
-        if q_value is None:
-            raise ValueError("the IDA arbiter needs a Q network: the cell's critic (Algorithm 1's Q)")
-        frozen = copy.deepcopy(q_value).requires_grad_(False).eval()
+    if method in ("ida", "ida_expert"):
+        network = q_value if method == "ida" else expert_q
+        if network is None:
+            whose = "the cell's critic (Algorithm 1's Q)" if method == "ida" else "an expert's (expert_q)"
+            raise ValueError(f"the {method} arbiter needs a Q network: {whose}")
+        frozen = copy.deepcopy(network).requires_grad_(False).eval()
         return arbiters.InterventionArbiter(frozen, action_dims, discrete=discrete)
     if method == "dcsc":
         return arbiters.ConfidenceArbiter(theta_init, action_dims)

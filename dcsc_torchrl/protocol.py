@@ -32,6 +32,7 @@ from dcsc_torchrl.episodes import EpisodeBatch, concat_runs, run_scenarios
 from dcsc_torchrl.machine import calibrated_uncertainty_scale
 from dcsc_torchrl.methods import (
     ARBITER_FORMS,
+    DEFAULT_METHODS,
     METHOD_NAMES,
     METHODS,
     build_policy,
@@ -251,8 +252,8 @@ class _Cell:
     def __init__(self, task: Task, operator: HumanOperator, machine_net: torch.nn.Module, *,
                  base: dict[str, Any], pretrain_seed: int, human: Mapping[str, Any], machine: MachineSettings,
                  arbiter: ArbiterSettings, online: Mapping[str, Any], protocol: ProtocolSettings,
-                 progress: Callable[[str], None] | None) -> None:
-        self.task, self.operator, self.machine_net = task, operator, machine_net
+                 progress: Callable[[str], None] | None, expert_q: torch.nn.Module | None = None) -> None:
+        self.task, self.operator, self.machine_net, self.expert_q = task, operator, machine_net, expert_q
         self.base, self.pretrain_seed = base, pretrain_seed
         self.human, self.machine, self.arbiter, self.online, self.protocol = human, machine, arbiter, online, protocol
         self.progress = progress
@@ -274,7 +275,8 @@ class _Cell:
         if arbiter is None:
             start = self.arbiter.start(method) if METHODS[method].kind == "learned" else {}
             arbiter = make_arbiter(method, self.task.action_dims, hula_threshold=self.hula_threshold,
-                                   rule=self.task.authority_rule, q_value=self.critic, discrete=self.task.discrete,
+                                   rule=self.task.authority_rule, q_value=self.critic, expert_q=self.expert_q,
+                                   discrete=self.task.discrete,
                                    **start, **kwargs)
         return build_policy(self.machine_net, arbiter, self.action_spec, discrete=self.task.discrete,
                             num_samples=self.machine.num_samples, lam=self.machine.lam, delta2=self.machine.delta2,
@@ -424,9 +426,10 @@ def run_cell(
     warmup: WarmupSettings,
     protocol: ProtocolSettings | None = None,
     scenarios: Scenarios | None = None,
-    methods: Sequence[str] = METHOD_NAMES,
+    methods: Sequence[str] = DEFAULT_METHODS,
     trace: bool = False,
     progress: Callable[[str], None] | None = None,
+    expert_q: torch.nn.Module | None = None,
 ) -> CellResult:
     """The protocol for one (task, operator, pretrained machine): calibrate, collaborate, validate.
 
@@ -447,7 +450,8 @@ def run_cell(
        ``operator`` run when that ran before it; ``dcsc_frozen`` starts from the
        ``arbiter.form`` arbiter's theta after collaboration, its confidences frozen at
        their collaboration means; ``ida`` acts on a frozen copy of the critic as its
-       warm-up left it (Algorithm 1's Q, before any collaboration).
+       warm-up left it (Algorithm 1's Q, before any collaboration); ``ida_expert`` on a
+       frozen copy of ``expert_q``.
 
     Args:
         task: the registered task (:data:`dcsc_torchrl.tasks.TASKS`).
@@ -464,6 +468,8 @@ def run_cell(
         methods: the methods validated, names of :data:`METHODS`.
         trace: record every frame of scenario 0 for each method validated.
         progress: called with a short line as each run starts (``"validation: hula"``).
+        expert_q: an expert's Q network (the task's critic shape: ``Q(s, .)`` or ``Q(s, a)``),
+            which method ``ida_expert`` reads; required when ``methods`` names it.
 
     Every run seeds torch with :func:`run_seed`, so its rows do not depend on which
     cells or methods ran before it.
@@ -472,6 +478,8 @@ def run_cell(
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}: expected names of {', '.join(METHOD_NAMES)}")
     check_task_methods(task, methods)
+    if "ida_expert" in methods and expert_q is None:
+        raise ValueError("method ida_expert reads an expert's Q: pass expert_q (e.g. a converged machine's critic)")
     if "ida" in methods and online.get("theta_critic") == "authority":
         raise ValueError("method ida reads Q(s, a): it cannot run with online.theta_critic=authority, "
                          "whose critic is Q(s, beta)")
@@ -479,7 +487,7 @@ def run_cell(
     protocol = ProtocolSettings() if protocol is None else protocol
     base = {"task": task.name, "operator": operator_name, "pretrain_seed": pretrain_seed}
     cell = _Cell(task, operator, machine_net, base=base, pretrain_seed=pretrain_seed, human=human, machine=machine,
-                 arbiter=arbiter, online=online, protocol=protocol, progress=progress)
+                 arbiter=arbiter, online=online, protocol=protocol, progress=progress, expert_q=expert_q)
     episodes, calibration = cell.calibrate(scenarios, critic_net, warmup)
     collaboration, learners, collaboration_updates = cell.collaborate(scenarios.collaboration, methods)
     validation, traces = cell.validate(scenarios.validation, methods, learners, trace=trace)

@@ -31,7 +31,7 @@ from dcsc_torchrl.protocol import (
     run_cell,
 )
 from dcsc_torchrl.recipes.folder import TABLES, folder_lock, prepare_results, write_csv
-from dcsc_torchrl.recipes.machines import load_machine_checkpoint, pretrained_machine
+from dcsc_torchrl.recipes.machines import expert_q, load_machine_checkpoint, pretrained_machine
 from dcsc_torchrl.recipes.settings import cell_settings, check_names, task_config
 from dcsc_torchrl.report import write_task_figures, write_task_summary
 from dcsc_torchrl.runlog import Progress, write_atomic
@@ -111,8 +111,10 @@ def write_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: Path,
     start = time.perf_counter()
     task = get_task(cell.task)
     methods = task_methods(task, methods)
+    expert = expert_q(task, cfg) if "ida_expert" in methods else None
     result = run_cell(task, task.make_operator(cell.operator), machine, critic, operator_name=cell.operator,
-                      pretrain_seed=cell.pretrain_seed, methods=methods, trace=cell.trace, **cell_settings(cfg),
+                      pretrain_seed=cell.pretrain_seed, methods=methods, trace=cell.trace, expert_q=expert,
+                      **cell_settings(cfg),
                       progress=lambda line: print(f"  {cell.name}: {line}", file=sys.stderr, flush=True))
     calibration = [result.calibration] if result.calibration else []
     for name, rows in zip(TABLES, (result.episodes, result.traces, result.theta, calibration), strict=True):
@@ -226,9 +228,12 @@ def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], exe
     (:func:`folder_lock`: one run at a time) and claims it (:func:`prepare_results`), runs the
     cells not done yet with ``executor`` (:func:`local_executor`, or ``dcsc sweep``'s Ray
     tasks), then gathers every task's outputs (:func:`gather`, the one writer), the failures
-    reported."""
+    reported. A grid that runs ``ida_expert`` loads its expert first (:func:`expert_q`): a missing
+    one is refused before any cell runs."""
     for grid in grids:
         writable_folder(out / grid.task)
+        if "ida_expert" in task_methods(get_task(grid.task), methods):
+            expert_q(get_task(grid.task), grid.cfg)
     with contextlib.ExitStack() as locks:
         for grid in grids:
             locks.enter_context(folder_lock(out / grid.task))

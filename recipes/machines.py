@@ -1,6 +1,6 @@
 """Where a cell's machine comes from: the checkpoint of its pretraining seed, pretrained (or
-resumed) first when missing, or the machine shipped with the package; and the table of the
-recipe that pretrains each task's machine."""
+resumed) first when missing, or the machine shipped with the package; the table of the
+recipe that pretrains each task's machine; and the expert's Q that ``ida_expert`` reads."""
 
 from __future__ import annotations
 
@@ -81,3 +81,20 @@ def pretrained_machine(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -
         train(pretrain_config(task, cfg, seed, quick=quick), resume=True)
         data = load_machine_checkpoint(task, cfg, path)
     return machine_from_checkpoint(data, task)
+
+
+def expert_q(task: Task, cfg: DictConfig) -> torch.nn.Module:
+    """The expert's Q network of method ``ida_expert``: the critic of the pretraining checkpoint
+    ``ida.expert`` (of this task; whatever its machine observes: LunarLander's Q critic sees
+    the whole state either way).
+
+    Raises:
+        ConfigError: ``ida.expert`` is not set, or names no checkpoint of this task (one line).
+    """
+    path = cfg.ida.expert
+    if path is None:
+        raise ConfigError("method ida_expert needs ida.expert: a pretraining checkpoint whose critic is the "
+                          "expert's Q (e.g. ida.expert=runs/map/target-converged/seed0/checkpoint.pt)")
+    if not Path(path).is_file():
+        raise ConfigError(f"ida.expert: no checkpoint at {path}")
+    return machine_from_checkpoint(load_checkpoint(path, task=task.name, modules=task.checkpoint_modules), task)[1]

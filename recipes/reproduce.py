@@ -22,7 +22,7 @@ import torch
 import yaml
 
 from dcsc_torchrl.config import UsageError, writable_folder
-from dcsc_torchrl.methods import METHOD_NAMES
+from dcsc_torchrl.methods import DEFAULT_METHODS
 from dcsc_torchrl.recipes.folder import RUN_RECORD
 from dcsc_torchrl.recipes.grid import Executor, checked_grid, local_executor, run_grid
 from dcsc_torchrl.recipes.options import Parser, add_reproduce_options
@@ -97,7 +97,7 @@ def reproduce(results: Path | None = None, *, quick: bool = False, overrides: Se
     grids = [checked_grid(task, quick=quick, overrides=overrides) for task in TASK_NAMES]
     start = time.perf_counter()
     torch.set_num_threads(grids[0].cfg.threads)
-    run_grid(results, grids, METHOD_NAMES, run, quick=quick, fresh=fresh)
+    run_grid(results, grids, DEFAULT_METHODS, run, quick=quick, fresh=fresh)
     return report(results, time.perf_counter() - start)
 
 

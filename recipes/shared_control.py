@@ -48,7 +48,7 @@ from dcsc_torchrl.config import (
     ConfigError,
     distinct,
 )
-from dcsc_torchrl.methods import METHOD_NAMES, check_task_methods
+from dcsc_torchrl.methods import DEFAULT_METHODS, METHOD_NAMES, check_task_methods
 from dcsc_torchrl.recipes.grid import checked_grid, local_executor, run_grid
 from dcsc_torchrl.recipes.options import Parser, add_run_options
 from dcsc_torchrl.recipes.settings import check_names
@@ -77,7 +77,7 @@ def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False
             check_task_methods(get_task(task_name), methods)
         except ValueError as err:
             raise ConfigError(str(err)) from None
-    methods = tuple(methods or METHOD_NAMES)
+    methods = tuple(methods or DEFAULT_METHODS)
     grid = checked_grid(task_name, quick=quick, overrides=overrides, operators=operators)
     torch.set_num_threads(grid.cfg.threads)
     run_grid(Path(out), [grid], methods, local_executor, quick=quick, fresh=fresh)

@@ -49,7 +49,7 @@ from omegaconf import DictConfig
 
 from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.config import load_config
-from dcsc_torchrl.methods import METHOD_NAMES
+from dcsc_torchrl.methods import DEFAULT_METHODS, METHOD_NAMES
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.recipes.configs import SWEEP_CONFIG
 from dcsc_torchrl.recipes.grid import (
@@ -194,7 +194,7 @@ def _run_cells(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], meth
     return ran, failed
 
 
-def run_sweep(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...] = METHOD_NAMES, *, quick: bool = False,
+def run_sweep(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...] = DEFAULT_METHODS, *, quick: bool = False,
               retries: int = 2, address: str | None = None, workers: int = 2, fresh: bool = False) -> GridResult:
     """Every cell of ``grids`` not done yet, as Ray tasks: :func:`run_grid` with :func:`ray_executor`.
 
@@ -235,7 +235,7 @@ def sweep(args: argparse.Namespace) -> GridResult:
     sweep_overrides, task_overrides = split_overrides(args.overrides)
     cfg = load_config(SWEEP_CONFIG, sweep_overrides, quick=args.quick)
     check_names("tasks", "task", cfg.tasks, TASK_NAMES)
-    methods = tuple(check_names("methods", "method", cfg.methods or METHOD_NAMES, METHOD_NAMES))
+    methods = tuple(check_names("methods", "method", cfg.methods or DEFAULT_METHODS, METHOD_NAMES))
     grids = [task_grid(task, cfg, task_overrides[task], quick=args.quick) for task in cfg.tasks]
     out = args.out or Path("results/quick" if args.quick else "results")
     result = run_sweep(out, grids, methods, quick=args.quick, retries=cfg.ray.retries,

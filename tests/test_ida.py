@@ -50,7 +50,7 @@ def test_the_method_acts_on_a_frozen_copy_of_the_critic():
     with torch.no_grad():
         critic.weight.add_(1.0)  # the cell's critic learning on does not move IDA's
     assert not torch.equal(arbiter.q_value.weight, critic.weight)
-    with pytest.raises(ValueError, match="IDA arbiter needs a Q network"):
+    with pytest.raises(ValueError, match="the ida arbiter needs a Q network"):
         make_arbiter("ida", 1)
 
 
@@ -74,3 +74,46 @@ def test_a_cell_asked_for_ida_with_an_authority_critic_is_refused_before_its_fir
     with pytest.raises(ValueError, match="method ida reads Q\\(s, a\\).*theta_critic=authority"):
         run_cell(get_task("lunarlander"), None, None, None, operator_name="x", pretrain_seed=0, human={}, machine=None,
                  arbiter=None, online={"theta_critic": "authority"}, warmup=None, methods=["operator", "ida"])
+
+
+def test_ida_expert_acts_on_a_frozen_copy_of_the_expert_not_the_cells_critic():
+    cell_critic, expert = torch.nn.Linear(9, 4), torch.nn.Linear(9, 4)
+    arbiter = make_arbiter("ida_expert", 1, q_value=cell_critic, expert_q=expert)
+    assert torch.equal(arbiter.q_value.weight, expert.weight) and arbiter.q_value is not expert
+    assert not any(p.requires_grad for p in arbiter.q_value.parameters())
+    with pytest.raises(ValueError, match="the ida_expert arbiter needs a Q network: an expert's"):
+        make_arbiter("ida_expert", 1, q_value=cell_critic)
+
+
+def test_a_cell_asked_for_ida_expert_without_an_expert_is_refused_before_its_first_frame():
+    from dcsc_torchrl.protocol import run_cell
+    from dcsc_torchrl.tasks import get_task
+
+    with pytest.raises(ValueError, match="method ida_expert reads an expert's Q: pass expert_q"):
+        run_cell(get_task("lunarlander"), None, None, None, operator_name="x", pretrain_seed=0, human={}, machine=None,
+                 arbiter=None, online={}, warmup=None, methods=["operator", "ida_expert"])
+
+
+def test_dcsc_run_with_ida_expert_reads_the_experts_checkpoint_and_needs_it_at_the_door(tmp_path):
+    """Named, ida_expert runs beside the others on the critic of ``ida.expert`` (here the shipped
+    machine's); without ``ida.expert`` it is refused before any cell runs; by default it does not run."""
+    import pandas as pd
+
+    from dcsc_torchrl.config import ConfigError
+    from dcsc_torchrl.recipes.shared_control import run_task
+    from dcsc_torchrl.shipped import shipped_path
+    from dcsc_torchrl.tasks import get_task
+
+    common = ["pretrain.shipped=true", "pretrain.seeds=[0]", "protocol.max_steps=40", "scenarios.operator_runs=2",
+              "scenarios.machine_alone_runs=2", "scenarios.collaboration_runs=2", "scenarios.validation_scenarios=2",
+              "protocol.group_size=1"]
+    with pytest.raises(ConfigError, match="method ida_expert needs ida.expert"):
+        run_task("lunarlander", out=tmp_path / "refused", operators=["expert"], methods=["operator", "ida_expert"],
+                 overrides=common)
+    assert not (tmp_path / "refused" / "lunarlander" / "cells").exists()
+    expert = shipped_path(get_task("lunarlander"), "blind")
+    out = run_task("lunarlander", out=tmp_path / "run", operators=["expert"], methods=["operator", "ida", "ida_expert"],
+                   overrides=[*common, f"ida.expert={expert}"])
+    validation = pd.read_csv(out / "episodes.csv").query("phase == 'validation'")
+    assert set(validation["method"]) == {"operator", "ida", "ida_expert"}
+    assert validation["mean_beta"].between(0, 1).all()

@@ -12,7 +12,14 @@ import torch
 from dcsc_torchrl.batched_envs import LUNAR_ID
 from dcsc_torchrl.envs.uav import HORIZON
 from dcsc_torchrl.humans.traits import PRESETS
-from dcsc_torchrl.methods import METHOD_NAMES, METHODS, learned_method, make_arbiter, task_methods
+from dcsc_torchrl.methods import (
+    DEFAULT_METHODS,
+    METHOD_NAMES,
+    METHODS,
+    learned_method,
+    make_arbiter,
+    task_methods,
+)
 from dcsc_torchrl.networks import ConcatInputs
 from dcsc_torchrl.tasks import TASKS, get_task
 from dcsc_torchrl.transforms import HumanOperator, HumanOperatorTransform
@@ -59,7 +66,7 @@ def test_the_registry_module_loads_no_torch():
 def test_every_method_but_the_ablation_has_an_arbiter_of_the_task_dims(method):
     arbiter = make_arbiter(method, 3, theta_init=0.5, hula_threshold=0.1, constant_beta=0.2,
                            rule=lambda obs: obs[..., 0] > 0, q_value=ConcatInputs(torch.nn.Linear(12, 1)),
-                           discrete=False)
+                           expert_q=ConcatInputs(torch.nn.Linear(12, 1)), discrete=False)
     td = arbiter(_confidences(4).update({"observation": torch.randn(4, 9), "machine_action": torch.rand(4, 3),
                                          "human_action": torch.rand(4, 3)}))
     assert td["beta"].shape == (4, 3)
@@ -85,8 +92,8 @@ def _confidences(n: int):
 
 
 def test_the_rule_method_runs_for_a_task_with_an_authority_rule_only():
-    assert task_methods(get_task("lunarlander")) == METHOD_NAMES
-    assert task_methods(get_task("uav")) == tuple(m for m in METHOD_NAMES if m != "rule")
+    assert task_methods(get_task("lunarlander")) == DEFAULT_METHODS == tuple(m for m in METHOD_NAMES if m != "ida_expert")
+    assert task_methods(get_task("uav")) == tuple(m for m in DEFAULT_METHODS if m != "rule")
     with pytest.raises(ValueError, match="the rule arbiter needs a rule"):
         make_arbiter("rule", 1)
 
