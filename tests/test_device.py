@@ -67,7 +67,8 @@ def test_every_arbiter_blends_on_the_device(device, method):
                                           0.5, 0.3)
     else:
         arbiter = make_arbiter(method, 3, theta_init=1.0, hula_threshold=0.01, constant_beta=0.4,
-                               rule=lambda obs: obs[..., 0] > 0, q_value=uav_critic([16]), discrete=False)
+                               rule=lambda obs: obs[..., 0] > 0, q_value=uav_critic([16]), expert_q=uav_critic([16]),
+                               discrete=False)
     policy = build_policy(uav_actor([16], 0.05).to(device), arbiter, action_spec(device), discrete=False,
                           **cfg.machine)
     td = policy.to(device)(env.reset())
