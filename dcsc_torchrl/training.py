@@ -233,7 +233,10 @@ class TrainingRun:
         else:
             self.log.path.unlink(missing_ok=True)
             self.best_path.unlink(missing_ok=True)
-        self._progress = Progress(self.total_episodes, f"{self.task} episodes", "ep", initial=self.episodes)
+        if self.total_frames:  # a frame budget: the bar counts frames
+            self._progress = Progress(self.total_frames, f"{self.task} frames", "frame", initial=self.frames)
+        else:
+            self._progress = Progress(self.total_episodes, f"{self.task} episodes", "ep", initial=self.episodes)
 
     def _restore(self, data: dict[str, Any]) -> None:
         for name, obj in self.stateful.items():
@@ -271,12 +274,15 @@ class TrainingRun:
     def record(self, frames: int, episodes: list[dict[str, Any]], metrics: Mapping[str, float]) -> None:
         """Counts ``frames``, logs one CSV row per finished episode, up to the segment's quota."""
         self.frames += frames
+        if self.total_frames:
+            self._progress.update(frames)
         for row in episodes:
             if self.segment_done:  # episodes past the segment's quota are not replayed on resume
                 break
             self.episodes += 1
             self.log.append({"episode": self.episodes, "frames": self.frames, **row, **metrics})
-            self._progress.update(1)
+            if not self.total_frames:
+                self._progress.update(1)
         if episodes:
             self._progress.set_postfix(ret=f"{episodes[-1]['return']:.1f}", frames=self.frames)
 

@@ -189,6 +189,12 @@ def test_a_frame_budget_ends_training_mid_segment_and_drives_the_linear_learning
     assert data["state"]["optim"]["param_groups"][0]["lr"] == pytest.approx(5e-4 * 10 / 300)
 
 
+def test_a_frame_budget_counts_its_progress_in_frames(tmp_path, capsys):
+    run_recipe("lunarlander", tmp_path, "train.frames=300", "train.episodes=1000")
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("lunarlander frames")]
+    assert lines and lines[-1].startswith("lunarlander frames: 300/300 frame")
+
+
 def test_the_rmsprop_optimiser_is_the_one_trained_with(tmp_path):
     run_recipe("lunarlander", tmp_path, "optim.name=rmsprop", "optim.eps=1.0e-5")
     group = load_checkpoint(tmp_path / "checkpoint.pt", task="lunarlander")["state"]["optim"]["param_groups"][0]
