@@ -91,9 +91,11 @@ class TaskGrid:
 def make_grid(task: str, cfg: DictConfig, presets: Sequence[str], seeds: Sequence[int], *,
               quick: bool = False) -> TaskGrid:
     """The cells of ``task`` for ``presets`` x ``seeds`` (each once, in order); ``pretrain.out_dir``
-    made absolute, so that the cells can run in other processes or nodes."""
+    (and ``ida.expert``) made absolute, so that the cells can run in other processes or nodes."""
     given = str(cfg.pretrain.out_dir)
     cfg.pretrain.out_dir = str(Path(given).resolve())
+    if cfg.ida.expert is not None:  # read by the cells too
+        cfg.ida.expert = str(Path(cfg.ida.expert).resolve())
     seeds = list(dict.fromkeys(int(s) for s in seeds))
     grid, main_operator = cell_grid(list(dict.fromkeys(presets)), seeds, cfg.operator.main)
     cells = [Cell(task, preset, seed, trace=traced) for seed, preset, traced in grid]

@@ -117,3 +117,18 @@ def test_dcsc_run_with_ida_expert_reads_the_experts_checkpoint_and_needs_it_at_t
     validation = pd.read_csv(out / "episodes.csv").query("phase == 'validation'")
     assert set(validation["method"]) == {"operator", "ida", "ida_expert"}
     assert validation["mean_beta"].between(0, 1).all()
+
+
+def test_the_grid_gives_its_cells_the_experts_absolute_path(tmp_path, monkeypatch):
+    """Cells may run in other processes or nodes (dcsc sweep): a relative ida.expert is resolved."""
+    from pathlib import Path
+
+    from dcsc_torchrl.recipes.grid import make_grid
+    from dcsc_torchrl.recipes.settings import task_config
+    from dcsc_torchrl.tasks import get_task
+
+    monkeypatch.chdir(tmp_path)
+    cfg = task_config(get_task("lunarlander"), ["ida.expert=experts/seed0/checkpoint.pt"], quick=True)
+    grid = make_grid("lunarlander", cfg, ["expert"], [0], quick=True)
+    assert grid.cfg.ida.expert == str(tmp_path.resolve() / "experts" / "seed0" / "checkpoint.pt")
+    assert Path(grid.cfg.pretrain.out_dir).is_absolute()
