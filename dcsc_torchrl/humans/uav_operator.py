@@ -29,6 +29,7 @@ DEFAULT_GRID = tuple(itertools.product((0.5, 1.5, 2.5), (0.5, 1.5, 2.5), (0.0, 1
 """The (rho0, sigma0, tau) candidates: 3 x 3 x 3 points of the action box [0, 3]^3 (tau
 0, 1.5 and 3 turn the flow round one side of an obstacle, over or under it, and round the
 other side)."""
+_ARENA_LOW, _ARENA_HIGH = np.array(ARENA_LOW), np.array(ARENA_HIGH)  # the compiled look-ahead's arena
 
 
 class SimulatedOperator(SimulatedHuman):
@@ -102,6 +103,7 @@ class SimulatedOperator(SimulatedHuman):
         if not near > 0:
             raise ValueError(f"near must be > 0, got {near}")
         self.grid = grid
+        self._host_grid = grid.double().numpy()  # what the compiled look-ahead reads, made once
         self.n_choices = len(grid)
         self.horizon = int(horizon)
         self.collision_penalty = float(collision_penalty)
@@ -157,8 +159,8 @@ class SimulatedOperator(SimulatedHuman):
         if position.device.type != "cpu":
             return self.rollout_scores(position, goal, centres, radii, velocities)
         # on the host, one compiled loop: the same equations in float64 (dcsc_torchrl.humans.lookahead)
-        host = [x.detach().double().contiguous().numpy() for x in (position, goal, centres, radii, velocities, self.grid)]
-        scores = lookahead_scores(*host, DT, np.array(ARENA_LOW), np.array(ARENA_HIGH), GOAL_RADIUS,
+        host = [x.detach().double().contiguous().numpy() for x in (position, goal, centres, radii, velocities)]
+        scores = lookahead_scores(*host, self._host_grid, DT, _ARENA_LOW, _ARENA_HIGH, GOAL_RADIUS,
                                   self.clearance_margin, self.clearance_weight, self.collision_penalty)
         return torch.from_numpy(scores).to(position.dtype)
 
