@@ -31,18 +31,19 @@ FPS = 50
 
 
 class FakeClock:
-    """``tick`` advances a frame counter; the time source reads frames / FPS (no sleeping)."""
+    """``tick`` advances a frame counter; the time source reads frames / fps (no sleeping)."""
 
-    def __init__(self) -> None:
+    def __init__(self, fps: float = FPS) -> None:
+        self.fps = fps
         self.frames = 0
 
     def tick(self, framerate: float) -> int:
-        assert framerate == FPS
+        assert framerate == self.fps
         self.frames += 1
-        return 1000 // FPS
+        return round(1000 / self.fps)
 
     def now(self) -> float:
-        return self.frames / FPS
+        return self.frames / self.fps
 
 
 class RecordingScreen:
@@ -211,6 +212,60 @@ def test_keyboard_pilot_passes_check_env_specs():
     )
     env = TransformedEnv(GymWrapper(gym.make(LUNAR_ID)), HumanOperatorTransform(pilot, seed=0))
     check_env_specs(env)
+
+
+# --- the prompt between episodes (PersonAtControls.prompt) ---------------------------
+
+
+class Script:
+    """An event source: returns its batches of events, one per call, then nothing."""
+
+    def __init__(self) -> None:
+        self.batches: list[list[pygame.event.Event]] = []
+
+    def push(self, *events: pygame.event.Event) -> None:
+        """Queues one call's events."""
+        self.batches.append(list(events))
+
+    def __call__(self) -> list[pygame.event.Event]:
+        return self.batches.pop(0) if self.batches else []
+
+
+def prompting_pilot() -> tuple[KeyboardPilot, RecordingScreen, Script]:
+    screen, script, clock = RecordingScreen(), Script(), FakeClock()
+    pilot = KeyboardPilot(screen=screen, clock=clock, time_source=clock.now, events=script, joystick=False)
+    return pilot, screen, script
+
+
+@pytest.mark.parametrize("start_key", [pygame.K_SPACE, pygame.K_RETURN])
+def test_prompt_shows_its_lines_until_space_or_enter(start_key):
+    pilot, screen, script = prompting_pilot()
+    lines = ["Episode 3 of 10: DC-SC shares control", "press Space to start"]
+    script.push()
+    script.push(key(pygame.KEYDOWN, pygame.K_UP))
+    script.push(key(pygame.KEYDOWN, start_key))
+    assert pilot.prompt(lines) is True
+    assert screen.shown == [(None, lines)] * 3  # a blank frame with the lines, once per frame waited
+    assert pilot.action == 2 and not pilot.quit_requested  # the controls follow the keys meanwhile
+
+
+@pytest.mark.parametrize("quit_event", [key(pygame.KEYDOWN, pygame.K_ESCAPE), key(pygame.KEYDOWN, pygame.K_q),
+                                        pygame.event.Event(pygame.QUIT)], ids=["escape", "q", "close"])
+def test_prompt_returns_false_when_the_person_quits(quit_event):
+    pilot, screen, script = prompting_pilot()
+    script.push(quit_event, key(pygame.KEYDOWN, pygame.K_SPACE))  # a quit wins over a start
+    assert pilot.prompt(["press Space"]) is False
+    assert pilot.quit_requested and len(screen.shown) == 1
+    assert pilot.prompt(["press Space"]) is False and len(screen.shown) == 1  # after a quit: at once
+
+
+def test_a_key_released_during_the_prompt_is_released():
+    pilot, _, script = prompting_pilot()
+    pilot(frame_td(True))
+    script.push(key(pygame.KEYDOWN, pygame.K_UP))
+    pilot(frame_td(False))
+    script.push(key(pygame.KEYUP, pygame.K_UP), key(pygame.KEYDOWN, pygame.K_SPACE))
+    assert pilot.prompt(["press Space"]) is True and pilot.action == 0
 
 
 # --- dcsc play ------------------------------------------------------------------------
