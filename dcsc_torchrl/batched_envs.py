@@ -47,6 +47,9 @@ class TargetLunarLanderBatch(EnvBase):
         num_envs: the envs stepped by one call.
         random_pad: ``False`` keeps the pad at the centre (the standard task).
         max_steps: the frames after which an episode is truncated (default: the id's 1000).
+        render_mode: the landers' gymnasium render mode: ``None`` (every run of the
+            protocol), or ``"rgb_array"``, whose :meth:`render` draws env 0 for a person
+            flying it (``dcsc study``; the physics, and so every episode, is the same).
 
     Examples:
         >>> env = TargetLunarLanderBatch(3, random_pad=False)
@@ -55,7 +58,8 @@ class TargetLunarLanderBatch(EnvBase):
         torch.Size([3, 5, 9])
     """
 
-    def __init__(self, num_envs: int, *, random_pad: bool = True, max_steps: int | None = None) -> None:
+    def __init__(self, num_envs: int, *, random_pad: bool = True, max_steps: int | None = None,
+                 render_mode: str | None = None) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         max_steps = gym.spec(LUNAR_ID).max_episode_steps if max_steps is None else max_steps
@@ -63,7 +67,7 @@ class TargetLunarLanderBatch(EnvBase):
             raise ValueError(f"max_steps must be >= 1, got {max_steps}")
         super().__init__(batch_size=torch.Size([num_envs]))
         self.max_steps = int(max_steps)
-        self._envs = [TargetLunarLander(random_pad=random_pad) for _ in range(num_envs)]
+        self._envs = [TargetLunarLander(random_pad=random_pad, render_mode=render_mode) for _ in range(num_envs)]
         self._observation = np.zeros((num_envs, 9), dtype=np.float32)
         self._elapsed = np.zeros(num_envs, dtype=np.int64)
         space = self._envs[0].observation_space
@@ -126,6 +130,10 @@ class TargetLunarLanderBatch(EnvBase):
             batch_size=self.batch_size,
         )
 
+    def render(self) -> np.ndarray | None:
+        """Env 0's frame (``H x W x 3`` uint8) with ``render_mode="rgb_array"``, else ``None``."""
+        return self._envs[0].render()
+
     def close(self, *, raise_if_closed: bool = True) -> None:
         for env in self._envs:
             env.close()
@@ -138,15 +146,16 @@ def make_lunar_env(
     random_pad: bool = True,
     max_steps: int | None = None,
     transforms: list[Transform] | None = None,
+    render_mode: str | None = None,
 ) -> TransformedEnv:
     """``num_envs`` TargetLunarLanders stepped by one TorchRL call (:class:`TargetLunarLanderBatch`),
     then ``transforms`` (e.g. the operator's), ``RewardSum`` and ``StepCounter``.
 
-    ``render_mode`` stays ``None`` (docs/envs.md: flame particles pile up otherwise). ``max_steps``
-    overrides the 1000-frame timeout.
+    ``max_steps`` overrides the 1000-frame timeout; ``render_mode="rgb_array"`` draws env 0
+    for a person (``env.base_env.render()``; docs/envs.md).
     """
-    return _with_episode_transforms(TargetLunarLanderBatch(num_envs, random_pad=random_pad, max_steps=max_steps),
-                                    transforms)
+    base = TargetLunarLanderBatch(num_envs, random_pad=random_pad, max_steps=max_steps, render_mode=render_mode)
+    return _with_episode_transforms(base, transforms)
 
 
 def make_uav_env(

@@ -38,6 +38,7 @@ from dcsc_torchrl.recipes.options import (
     add_reproduce_options,
     add_run_options,
     add_ship_options,
+    add_study_options,
     add_sweep_options,
     description,
 )
@@ -127,6 +128,25 @@ def _play(args: argparse.Namespace) -> None:
         raise
 
 
+def _study(args: argparse.Namespace) -> Path:
+    from dcsc_torchrl.config import UsageError, load_config
+
+    task = get_task(args.task)
+    if args.gather:
+        from dcsc_torchrl.recipes.study import gather_participants
+
+        path = gather_participants(task, args.out)
+        _say(f"the study's table in {path}")
+        return path
+    if args.participant is None:
+        raise UsageError("dcsc study: name the participant with --participant ID (or --gather the study's table)")
+    load_config(CONFIGS[args.task].protocol, args.overrides, quick=args.quick, quiet=True)  # before torch loads
+    from dcsc_torchrl.recipes.study import run_study
+
+    return run_study(task, args.participant, out=args.out, overrides=args.overrides, short=args.short,
+                     quick=args.quick, checkpoint=args.checkpoint)
+
+
 def _ship(args: argparse.Namespace) -> Path:
     from dcsc_torchrl.shipped import export_machine
 
@@ -144,6 +164,8 @@ COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], Any], Callabl
             add_map_options, _map),
     "report": ("redraw summaries and figures from <results>/<task>/*.csv", add_report_options, _report),
     "play": ("fly TargetLunarLander yourself, alone or with DC-SC", add_play_options, _play),
+    "study": ("a person through the paper's protocol: practice, collaboration, validation", add_study_options,
+              _study),
     "ship": ("export a pretraining checkpoint as the machine shipped with the package", add_ship_options, _ship),
 }
 
@@ -159,7 +181,7 @@ def build_parser() -> Parser:
     for name, (summary, add_options, handler) in COMMANDS.items():
         sub = commands.add_parser(name, help=summary, description=summary, prog=f"dcsc {name}",
                                   epilog=RUN_EPILOG if name == "run" else None)
-        if name in ("pretrain", "run", "ship"):
+        if name in ("pretrain", "run", "ship", "study"):
             sub.add_argument("task", choices=TASK_NAMES, help="the task")
         elif name == "play":
             sub.add_argument("task", choices=["lunarlander"], help="the task (LunarLander only)")

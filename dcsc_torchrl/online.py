@@ -16,6 +16,7 @@ update (theta, its gradient, both losses).
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -147,6 +148,24 @@ class OnlineLearner(ABC):
     def _soft_update(self) -> None:
         if self.targets is not None:
             self.targets.step()
+
+    # -- keeping what was learned -----------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Everything the learner has learned: theta (the arbiter), the critic and its target
+        (the loss), both optimisers and the update history. :meth:`load_state_dict` of a
+        learner built the same way continues exactly where this one stopped (``dcsc study``
+        resumes a person's session with it)."""
+        return {"arbiter": self.policy["arbiter"].state_dict(), "loss": self.loss.state_dict(),
+                "theta_optim": self.theta_optim.state_dict(), "critic_optim": self.critic_optim.state_dict(),
+                "history": list(self.history)}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restores a :meth:`state_dict` (of a learner of the same policy and critic shapes)."""
+        self.policy["arbiter"].load_state_dict(state["arbiter"])
+        self.loss.load_state_dict(state["loss"])
+        self.theta_optim.load_state_dict(state["theta_optim"])
+        self.critic_optim.load_state_dict(state["critic_optim"])
+        self.history = list(state["history"])
 
     # -- Algorithm 1, once per collected batch ---------------------------------------------
     def __call__(self, batch: TensorDictBase) -> None:

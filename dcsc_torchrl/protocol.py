@@ -246,32 +246,56 @@ def confidence_signal(uncertainty_scale: float, frames: TensorDictBase, gap: tor
     }
 
 
-class _Cell:
-    """The state of one cell while it runs: what calibration found, and the runs' plumbing."""
+class ProtocolCell:
+    """One cell of the protocol while it runs: its settings, what calibration found, and its runs.
+
+    :func:`run_cell` plays each phase's scenarios as one batch; ``dcsc study`` plays a
+    person's through the same methods one scenario at a time (:meth:`play` with one seed,
+    :meth:`calibrate_with` on the person's practice episodes), so a person's rows and a
+    simulated operator's are made by the same code.
+
+    Args:
+        task: the registered task.
+        operator: the operator of every run but the machine-alone ones.
+        machine_net: the pretrained actor.
+        base: the columns every row starts with (task, operator, pretrain_seed).
+        pretrain_seed: the machine's pretraining seed (seeds the runs).
+        human, machine, arbiter, online, protocol: the settings of :func:`run_cell`.
+        progress: called with a short line as each run starts.
+        expert_q: the Q network method ``ida_expert`` reads.
+        machine_alone_operator: the operator in the loop of the machine-alone runs, whose
+            actions nobody reads (default: ``operator``; a person cannot fly a batch).
+    """
 
     def __init__(self, task: Task, operator: HumanOperator, machine_net: torch.nn.Module, *,
                  base: dict[str, Any], pretrain_seed: int, human: Mapping[str, Any], machine: MachineSettings,
                  arbiter: ArbiterSettings, online: Mapping[str, Any], protocol: ProtocolSettings,
-                 progress: Callable[[str], None] | None, expert_q: torch.nn.Module | None = None) -> None:
+                 progress: Callable[[str], None] | None = None, expert_q: torch.nn.Module | None = None,
+                 machine_alone_operator: HumanOperator | None = None) -> None:
         self.task, self.operator, self.machine_net, self.expert_q = task, operator, machine_net, expert_q
+        self.machine_alone_operator = operator if machine_alone_operator is None else machine_alone_operator
         self.base, self.pretrain_seed = base, pretrain_seed
         self.human, self.machine, self.arbiter, self.online, self.protocol = human, machine, arbiter, online, protocol
         self.progress = progress
         self.hula_threshold: float | None = arbiter.hula_threshold
         self.uncertainty_scale = 1.0
         self.critic: torch.nn.Module | None = None  # Algorithm 1's Q after its warm-up (IDA reads it)
-        spec_env = self.make_env([0], operator_seed=0)
+        spec_env = self.make_env([0], operator_seed=0, operator=self.machine_alone_operator)
         self.action_spec = spec_env.full_action_spec["action"]
         self.observation_size = spec_env.observation_spec["observation"].shape[-1]
         spec_env.close()
 
-    def make_env(self, seeds: Sequence[int], operator_seed: int, first_episode_only: bool = False) -> TransformedEnv:
-        transforms = [HumanOperatorTransform(self.operator, seed=operator_seed), HumanConfidenceTransform(**self.human)]
+    def make_env(self, seeds: Sequence[int], operator_seed: int, first_episode_only: bool = False,
+                 operator: HumanOperator | None = None) -> TransformedEnv:
+        """The task's envs of ``seeds`` with ``operator`` (default the cell's) and its confidence."""
+        operator = self.operator if operator is None else operator
+        transforms = [HumanOperatorTransform(operator, seed=operator_seed), HumanConfidenceTransform(**self.human)]
         if first_episode_only:
             transforms.insert(0, FirstEpisodeOnly())
         return self.task.make_envs(list(seeds), self.protocol.max_steps, transforms)
 
     def policy(self, method: str, arbiter: Arbiter | None = None, **kwargs: Any) -> SharedPolicyModule:
+        """The shared policy of ``method`` (its arbiter from the cell's settings and calibration, or ``arbiter``)."""
         if arbiter is None:
             start = self.arbiter.start(method) if METHODS[method].kind == "learned" else {}
             arbiter = make_arbiter(method, self.task.action_dims, hula_threshold=self.hula_threshold,
@@ -284,14 +308,23 @@ class _Cell:
                             observation_size=self.observation_size)
 
     def play(self, phase: str, method: str, seeds: Sequence[int], policy: SharedPolicyModule,
-             update: OnlineLearner | None = None, trace: bool = False) -> EpisodeBatch:
+             update: Callable[[TensorDictBase], None] | None = None, trace: bool = False, *,
+             hold_done: bool | None = None, torch_seed: int | None = None) -> EpisodeBatch:
+        """One run: ``policy`` on the scenarios ``seeds`` (one env each).
+
+        Torch is seeded with ``torch_seed``, by default :func:`run_seed` of the phase and
+        method (one run of each per cell). ``hold_done`` (default: when nothing learns)
+        holds each env once its first episode is done (:class:`FirstEpisodeOnly`); a run
+        that learns keeps every env stepping until the last is done, its frames fed to
+        ``update``. The machine-alone runs fly with :attr:`machine_alone_operator`.
+        """
         if self.progress is not None:
             self.progress(f"{phase}: {method}")
         seed = self.protocol.seed
-        torch.manual_seed(run_seed(seed, self.pretrain_seed, phase, method))
-        # a run that learns nothing reads only each env's first episode: the envs done are held
+        torch.manual_seed(run_seed(seed, self.pretrain_seed, phase, method) if torch_seed is None else torch_seed)
         env = self.make_env(seeds, operator_seed=operator_seed(seed, self.pretrain_seed, seeds[0]),
-                            first_episode_only=update is None)
+                            first_episode_only=update is None if hold_done is None else hold_done,
+                            operator=self.machine_alone_operator if method == "machine" else None)
         result = run_scenarios(env, policy, self.task, rollout_length=self.protocol.rollout_length, update=update,
                                trace=trace, exploration_type=self.protocol.exploration_type)
         env.close()
@@ -308,30 +341,42 @@ class _Cell:
             self.progress(f"validation: {name} (the operator's run: beta {beta} plays the operator alone)")
         return EpisodeBatch([{**row, "mean_beta": float(beta)} for row in operator_alone.rows])
 
-    def rows(self, phase: str, method: str, seeds: Sequence[int], result: EpisodeBatch,
+    def rows(self, phase: str, method: str, seeds: Sequence[int], result: EpisodeBatch, *, first_index: int = 0,
              **extra: Any) -> list[dict[str, Any]]:
+        """``episodes.csv``'s rows of a run; ``first_index``: the position of ``seeds[0]`` among the
+        phase's scenarios (a validation scenario's group is its position // ``group_size`` + 1)."""
         group = self.protocol.group_size
         return [{**self.base, "method": method, "phase": phase,
-                 "group": index // group + 1 if phase == "validation" else 0,
+                 "group": (first_index + index) // group + 1 if phase == "validation" else 0,
                  "seed": s, "path_length": float("nan"), **row, "hula_threshold": self.hula_threshold, **extra}
                 for index, (s, row) in enumerate(zip(seeds, result.rows, strict=True))]
 
     def traced(self, phase: str, method: str, seeds: Sequence[int], result: EpisodeBatch) -> list[dict[str, Any]]:
+        """``trace.csv``'s rows of a run's traced scenario (``seeds[0]``)."""
         return [{**self.base, "method": method, "phase": phase, "seed": seeds[0], **r} for r in result.trace]
 
     # -- the three phases of run_cell ---------------------------------------------------
     def calibrate(self, scenarios: Scenarios, critic_net: torch.nn.Module,
                   warmup: WarmupSettings) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-        """Phase 1: everything the other phases need, known before any row is written (HULA's
-        threshold, the uncertainty unit, and :attr:`critic`, warmed up on both partners'
-        transitions). Returns the phase's rows and the cell's calibration record."""
-        protocol, machine = self.protocol, self.machine
+        """Phase 1: the operator alone on ``scenarios.operator_alone``, then :meth:`calibrate_with`
+        its episodes. Returns the phase's rows and the cell's calibration record."""
         alone = self.play("operator_alone", "operator", scenarios.operator_alone, self.policy("operator"))
+        machine_rows, calibration = self.calibrate_with(alone, scenarios, critic_net, warmup)
+        return self.rows("operator_alone", "operator", scenarios.operator_alone, alone) + machine_rows, calibration
+
+    def calibrate_with(self, alone: EpisodeBatch, scenarios: Scenarios, critic_net: torch.nn.Module,
+                       warmup: WarmupSettings) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+        """Everything the other phases need, from the operator-alone episodes ``alone`` (the
+        calibration runs; played here, or one by one by a person): HULA's threshold, the
+        uncertainty unit, the machine alone on ``scenarios.machine_alone`` and :attr:`critic`,
+        warmed up on both partners' transitions. Returns the machine's (and blends') rows and
+        the calibration record."""
+        protocol, machine = self.protocol, self.machine
         if self.hula_threshold is None:
             self.hula_threshold = float(torch.quantile(alone.uncertainty.double(), 0.9))
         if protocol.calibrate_machine:
             self.uncertainty_scale = calibrated_uncertainty_scale(alone.uncertainty, machine.lam, machine.delta2)
-        episodes = self.rows("operator_alone", "operator", scenarios.operator_alone, alone)
+        episodes: list[dict[str, Any]] = []
         warm_frames = alone.frames
         if len(scenarios.machine_alone):
             machine_alone = self.play("machine_alone", "machine", scenarios.machine_alone, self.policy("machine"))
@@ -486,7 +531,7 @@ def run_cell(
     scenarios = Scenarios.standard() if scenarios is None else scenarios
     protocol = ProtocolSettings() if protocol is None else protocol
     base = {"task": task.name, "operator": operator_name, "pretrain_seed": pretrain_seed}
-    cell = _Cell(task, operator, machine_net, base=base, pretrain_seed=pretrain_seed, human=human, machine=machine,
+    cell = ProtocolCell(task, operator, machine_net, base=base, pretrain_seed=pretrain_seed, human=human, machine=machine,
                  arbiter=arbiter, online=online, protocol=protocol, progress=progress, expert_q=expert_q)
     episodes, calibration = cell.calibrate(scenarios, critic_net, warmup)
     collaboration, learners, collaboration_updates = cell.collaborate(scenarios.collaboration, methods)

@@ -13,7 +13,7 @@ This module imports neither torch nor gymnasium.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     import pandas as pd
     import torch
     from torch import nn
-    from torchrl.envs import Transform, TransformedEnv
+    from torchrl.envs import TransformedEnv
 
     from dcsc_torchrl.transforms import HumanOperator
 
@@ -55,10 +55,14 @@ class Task:
             (:class:`~dcsc_torchrl.arbiters.RuleArbiter`): ``observation [*batch, obs] -> [*batch]``
             bool, where the machine holds the controls (``None``: the task has none, and the
             protocol skips that method).
-        make_envs: ``(scenario_seeds, max_steps, transforms) -> TransformedEnv``, one env per scenario.
+        make_envs: ``(scenario_seeds, max_steps, transforms, *, render=False) -> TransformedEnv``, one env per
+            scenario; with ``render`` the base env's ``render()`` (where it has one) draws env 0 for
+            :attr:`make_person`'s window.
         make_operator: ``preset -> HumanOperator``, the simulated operator with a preset's traits.
         make_networks: ``network config group -> (actor, critic)``, the pretraining recipe's networks.
         make_pretraining_envs: ``num_envs -> env``, the batched env the machine is pretrained on.
+        make_person: ``t_d -> HumanOperator``, a person at the controls in a window (``dcsc study``;
+            ``t_d`` of Eq. 6: no change of the controls for longer is a slow decision).
     """
 
     name: str
@@ -72,10 +76,11 @@ class Task:
     metrics: tuple[str, ...]
     max_steps: int
     checkpoint_modules: tuple[str, str]
-    make_envs: Callable[[Sequence[int], int | None, Sequence[Transform]], TransformedEnv] = field(repr=False)
+    make_envs: Callable[..., TransformedEnv] = field(repr=False)
     make_operator: Callable[[str], HumanOperator] = field(repr=False)
     make_networks: Callable[[Mapping[str, Any]], tuple[nn.Module, nn.Module]] = field(repr=False)
     make_pretraining_envs: Callable[[int], TransformedEnv] = field(repr=False)
+    make_person: Callable[[float], HumanOperator] = field(repr=False)
     trace_vectors: Mapping[str, str] = field(default_factory=dict)
     action_labels: tuple[str, ...] = ()
     plot_trajectories: Callable[[pd.DataFrame, int, Path, str, Callable[[str], str]], Path] | None = field(default=None, repr=False)

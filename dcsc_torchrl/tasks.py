@@ -37,24 +37,31 @@ if TYPE_CHECKING:
     from dcsc_torchrl.transforms import HumanOperator
 
 
-def _lunar_envs(scenario_seeds: Sequence[int], max_steps: int | None, transforms: Sequence[Transform]) -> TransformedEnv:
+def _lunar_envs(scenario_seeds: Sequence[int], max_steps: int | None, transforms: Sequence[Transform], *,
+                render: bool = False) -> TransformedEnv:
     """TargetLunarLanders with a random pad, env ``i`` playing scenario ``scenario_seeds[i]``.
 
     The vector env is seeded once (env ``i`` gets ``seed + i``), so the seeds must be
-    consecutive.
+    consecutive. ``render``: gymnasium's ``rgb_array`` frames of env 0 (``env.base_env.render()``).
     """
     from dcsc_torchrl.batched_envs import make_lunar_env
 
     seeds = list(scenario_seeds)
     if seeds != list(range(seeds[0], seeds[0] + len(seeds))):
         raise ValueError(f"LunarLander scenarios must be consecutive seeds (one vector env seeded once), got {seeds}")
-    env = make_lunar_env(len(seeds), random_pad=True, max_steps=max_steps, transforms=list(transforms))
+    env = make_lunar_env(len(seeds), random_pad=True, max_steps=max_steps, transforms=list(transforms),
+                         render_mode="rgb_array" if render else None)
     env.set_seed(seeds[0])
     return env
 
 
-def _uav_envs(scenario_seeds: Sequence[int], max_steps: int | None, transforms: Sequence[Transform]) -> TransformedEnv:
-    """One native batched UAV env, env ``i`` flying scenario ``scenario_seeds[i]``."""
+def _uav_envs(scenario_seeds: Sequence[int], max_steps: int | None, transforms: Sequence[Transform], *,
+              render: bool = False) -> TransformedEnv:
+    """One native batched UAV env, env ``i`` flying scenario ``scenario_seeds[i]``.
+
+    ``render`` changes nothing: the UAV's person draws its own frame from the TensorDict
+    (:class:`~dcsc_torchrl.humans.UAVKeyboardOperator`).
+    """
     from dcsc_torchrl.batched_envs import make_uav_env
 
     return make_uav_env(len(scenario_seeds), scenario_seeds=list(scenario_seeds), max_steps=max_steps,
@@ -85,6 +92,18 @@ def _uav_operator(preset: str) -> HumanOperator:
     from dcsc_torchrl.humans import SimulatedOperator
 
     return SimulatedOperator.from_preset(preset)
+
+
+def _lunar_person(t_d: float) -> HumanOperator:
+    from dcsc_torchrl.humans import KeyboardPilot
+
+    return KeyboardPilot(t_d=t_d)
+
+
+def _uav_person(t_d: float) -> HumanOperator:
+    from dcsc_torchrl.humans import UAVKeyboardOperator
+
+    return UAVKeyboardOperator(t_d=t_d)
 
 
 def _lunar_networks(network: Mapping[str, Any]) -> tuple[nn.Module, nn.Module]:
@@ -131,7 +150,7 @@ TASKS: dict[str, Task] = {
             episode_keys=("success",), metrics=("success", "steps", "return"), max_steps=1000,
             checkpoint_modules=("actor", "qvalue"),
             make_envs=_lunar_envs, make_operator=_pilot, make_networks=_lunar_networks,
-            make_pretraining_envs=_lunar_pretraining_envs,
+            make_pretraining_envs=_lunar_pretraining_envs, make_person=_lunar_person,
             authority_rule=_over_the_pad,
         ),
         Task(
@@ -141,7 +160,7 @@ TASKS: dict[str, Task] = {
             episode_keys=("success", "path_length"), metrics=("success", "path_length", "return"), max_steps=500,
             checkpoint_modules=("actor", "critic"), trace_vectors={"position": "xyz"}, action_labels=("ρ0", "σ0", "τ"),
             make_envs=_uav_envs, make_operator=_uav_operator, make_networks=_uav_networks,
-            make_pretraining_envs=_uav_pretraining_envs,
+            make_pretraining_envs=_uav_pretraining_envs, make_person=_uav_person,
             plot_trajectories=_uav_trajectories,
         ),
     )

@@ -83,6 +83,28 @@ def pretrained_machine(task: Task, cfg: DictConfig, seed: int, *, quick: bool) -
     return machine_from_checkpoint(data, task)
 
 
+def ready_machine(task: Task, cfg: DictConfig, checkpoint: Path | None = None) -> tuple[torch.nn.Module, torch.nn.Module]:
+    """The machine a person flies with, never pretrained on the spot (a participant would wait):
+    ``checkpoint``; else the first pretraining seed's checkpoint of the config, where ``dcsc run``
+    reads it; else, when that was never pretrained, the machine shipped with the package (of the
+    config's ``pretrain.observes``).
+
+    Raises:
+        ConfigError: ``checkpoint`` is given but is no file, or holds another view's machine (one line).
+    """
+    if checkpoint is not None and not Path(checkpoint).is_file():
+        raise ConfigError(f"--checkpoint: no {task.name} checkpoint at {checkpoint}: run `dcsc pretrain {task.name}` "
+                          "first, or leave --checkpoint out for the shipped machine")
+    path = Path(checkpoint) if checkpoint is not None else machine_checkpoint(task, cfg, cfg.pretrain.seeds[0])
+    if not path.is_file():
+        from dcsc_torchrl.shipped import shipped_path
+
+        path = shipped_path(task, cfg.pretrain.get("observes"))
+        print(f"no {task.name} checkpoint at {checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])}: flying "
+              f"with the shipped machine ({path.name})", file=sys.stderr, flush=True)
+    return machine_from_checkpoint(load_machine_checkpoint(task, cfg, path), task)
+
+
 def expert_q(task: Task, cfg: DictConfig) -> torch.nn.Module:
     """The expert's Q network of method ``ida_expert``: the critic of the pretraining checkpoint
     ``ida.expert`` (of this task; whatever its machine observes: LunarLander's Q critic sees

@@ -85,6 +85,13 @@ def _name(text: str) -> str:
     return text
 
 
+def _folder_name(text: str) -> str:
+    """An argparse type: a name that is also one folder (letters, digits, ``_ . -``; not hidden)."""
+    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*", text):
+        raise argparse.ArgumentTypeError(f"expected letters, digits, '_', '.' or '-' (a folder name), got {text!r}")
+    return text
+
+
 def _overrides(parser: argparse.ArgumentParser, example: str) -> None:
     parser.add_argument("overrides", nargs="*", metavar="key=value",
                         help=f"config overrides, anywhere on the line, hydra style: {example}")
@@ -193,6 +200,25 @@ def add_play_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
                         help="folder of episodes.csv and trace.csv, appended to (default results/play)")
     parser.add_argument("--participant", type=_name, default="person",
                         help="the operator column of the CSVs (a participant id in a user study)")
+    return parser
+
+
+def add_study_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``dcsc study`` after the task (the ones :mod:`dcsc_torchrl.recipes.study` reads)."""
+    parser.add_argument("--participant", type=_folder_name, default=None,
+                        help="the participant's id: their folder OUT/<task>/<id>/ and the operator column")
+    parser.add_argument("--out", type=Path, default=Path("results/study"),
+                        help="the study's root (default results/study)")
+    parser.add_argument("--short", action="store_true",
+                        help="a first try: 5 practice, 5 collaboration and 10 validation scenarios a method "
+                             "(the paper's 20 / 20 / 50 otherwise)")
+    parser.add_argument("--quick", action="store_true", help="the tiny setting of the yaml's quick block (tests)")
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="the machine's pretraining checkpoint (default: where dcsc run reads seed 0's, else "
+                             "the shipped machine)")
+    parser.add_argument("--gather", action="store_true",
+                        help="fly nothing: write OUT/<task>/study.md, the table over every participant there")
+    _overrides(parser, "scenarios.validation_scenarios=20 arbiter.form=paper")
     return parser
 
 

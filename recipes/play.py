@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -47,6 +46,7 @@ from dcsc_torchrl.humans.operator_alone import operator_only_policy
 from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.protocol import ProtocolSettings
 from dcsc_torchrl.recipes.configs import CONFIGS
+from dcsc_torchrl.recipes.machines import ready_machine
 from dcsc_torchrl.runlog import RunLog
 from dcsc_torchrl.tasks import get_task
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
@@ -81,23 +81,6 @@ def load_machine(path: Path) -> tuple[nn.Module, nn.Module]:
             "pass --checkpoint PATH, or fly alone with --assist none"
         )
     return machine_from_checkpoint(load_checkpoint(path, task=TASK.name, modules=TASK.checkpoint_modules), TASK)
-
-
-def assisting_machine(checkpoint: Path | None, cfg: DictConfig) -> tuple[nn.Module, nn.Module]:
-    """The machine of ``--assist dcsc`` or ``ida``: ``checkpoint``; else the first pretraining seed's
-    checkpoint of the config; else, when that was never pretrained, the shipped machine (of
-    the config's ``pretrain.observes``)."""
-    from dcsc_torchrl.checkpoint import checkpoint_path
-
-    default = checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])
-    if checkpoint is None and not default.exists():
-        from dcsc_torchrl.shipped import shipped_machine, shipped_path
-
-        observes = cfg.pretrain.get("observes")
-        print(f"no checkpoint at {default}: flying with the shipped machine ({shipped_path(TASK, observes).name})",
-              file=sys.stderr)
-        return shipped_machine(TASK, observes)
-    return load_machine(checkpoint or default)
 
 
 def make_play_env(
@@ -300,7 +283,7 @@ def run_play(args: argparse.Namespace) -> None:
     cfg = play_config()
     confidence = HumanConfidenceTransform(**cfg.human)
     try:
-        networks = assisting_machine(args.checkpoint, cfg) if args.assist != "none" else None
+        networks = ready_machine(TASK, cfg, args.checkpoint) if args.assist != "none" else None
         method = {"dcsc": assist_method(cfg), "ida": "ida", "none": "operator"}[args.assist]
         recorder = PlayRecorder(args.out, method, args.participant)  # its folder checked before the window opens
         render_env = gym.make(LUNAR_ID, render_mode="rgb_array")

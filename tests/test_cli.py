@@ -207,7 +207,7 @@ def test_play_looks_where_run_looks_then_flies_the_shipped_machine(tmp_path, mon
     cfg = load_config(RECIPES / "shared_control_lunarlander.yaml")
     main(["play", "lunarlander"])
     err = capsys.readouterr().err
-    assert f"no checkpoint at {checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])}" in err
+    assert f"no lunarlander checkpoint at {checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])}" in err
     assert "shipped machine (lunarlander_seed0.pt)" in err
 
 

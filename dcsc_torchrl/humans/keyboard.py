@@ -70,7 +70,7 @@ _INVISIBLE_DRIVERS = ("offscreen", "dummy")
 
 
 class NoDisplayError(RuntimeError):
-    """There is no display to show the keyboard pilot its frames."""
+    """There is no display to show the person at the keys their frames."""
 
 
 class Screen(Protocol):
@@ -111,14 +111,14 @@ def open_window(
     display_vars = ("DISPLAY", "WAYLAND_DISPLAY", "SDL_VIDEODRIVER")
     if sys.platform.startswith("linux") and not any(os.environ.get(v) for v in display_vars):
         raise NoDisplayError(
-            f"no display for the keyboard pilot: none of {', '.join(display_vars)} is set; {hint}"
+            f"no display for the window of the person at the keys: none of {', '.join(display_vars)} is set; {hint}"
         )
     try:
         pygame.display.init()
         pygame.font.init()
         window = pygame.display.set_mode(size)
     except pygame.error as error:
-        raise NoDisplayError(f"no display for the keyboard pilot ({error}); {hint}") from error
+        raise NoDisplayError(f"no display for the window of the person at the keys ({error}); {hint}") from error
     # SDL falls back to an invisible driver when the display named in DISPLAY does not
     # answer: refuse it unless SDL_VIDEODRIVER asked for it (the headless tests do)
     driver = pygame.display.get_driver()
@@ -127,7 +127,7 @@ def open_window(
         pygame.display.quit()
         named = ", ".join(f"{v}={os.environ[v]}" for v in display_vars if os.environ.get(v)) or "no display"
         raise NoDisplayError(
-            f"no display for the keyboard pilot: {named} is set but no display server answers there "
+            f"no display for the window of the person at the keys: {named} is set but no display server answers there "
             f"(SDL fell back to its invisible {driver!r} driver); start one or {hint}"
         )
     pygame.display.set_caption(caption)
