@@ -33,6 +33,7 @@ import pandas as pd
 import torch
 
 from dcsc_torchrl.batched_envs import LUNAR_ID
+from dcsc_torchrl.networks import view_recipe_settings
 from dcsc_torchrl.recipes.pretrain_a2c_lunarlander import main as pretrain_lunarlander
 
 RL_ZOO = {"envs": 8, "n_steps": 5, "gamma": 0.995, "lr": 8.3e-4, "ent_coef": 1e-5, "vf_coef": 0.5,
@@ -52,7 +53,7 @@ def ours(seed: int, frames: int, out: Path) -> tuple[float, float]:
         "loss.normalize_advantage=false", "optim.name=rmsprop", f"optim.lr={z['lr']}", "optim.lr_schedule=linear",
         f"optim.eps={z['rms_prop_eps']}", f"optim.max_grad_norm={z['max_grad_norm']}", "network.actor_dropout=0.0",
         "network.init=orthogonal", "network.hidden=[64,64]", f"train.frames={frames}", "train.episodes=1000000",
-        "train.checkpoint_every=1000000", "eval.episodes=0",
+        "train.checkpoint_every=1000000", "eval.episodes=0", *view_recipe_settings("blind"),
     ])
     elapsed = time.perf_counter() - start
     log = pd.read_csv(out / "train.csv")

@@ -38,8 +38,10 @@ from dcsc_torchrl.transforms import (
 def play(task_name: str, seeds: list[int], beta: float, first_episode_only: bool) -> tuple[EpisodeBatch, float]:
     """One constant-β run of ``seeds``; its episodes and its seconds."""
     task = get_task(task_name)
-    settings = cell_settings(task_config(task))
-    machine, _ = machine_from_checkpoint(load_checkpoint(shipped_path(task), task=task.name), task)
+    cfg = task_config(task)
+    settings = cell_settings(cfg)
+    checkpoint = load_checkpoint(shipped_path(task, cfg.pretrain.get("observes")), task=task.name)
+    machine, _ = machine_from_checkpoint(checkpoint, task)
     transforms = [HumanOperatorTransform(task.make_operator("expert"), seed=0),
                   HumanConfidenceTransform(**settings["human"])]
     env = task.make_envs(seeds, None, [FirstEpisodeOnly(), *transforms] if first_episode_only else transforms)

@@ -44,8 +44,9 @@ METHODS = ("machine", "operator", "hula", "dcsc_centred")
 
 def validation_run(task: Task, seeds: list[int], method: str, hula_threshold: float) -> tuple[EpisodeBatch, float]:
     """One validation run of ``method`` as the protocol plays it; its episodes and seconds."""
-    settings = cell_settings(task_config(task))
-    machine, critic = shipped_machine(task)
+    cfg = task_config(task)
+    settings = cell_settings(cfg)
+    machine, critic = shipped_machine(task, cfg.pretrain.get("observes"))
     learns = method == "dcsc_centred"
     transforms = [HumanOperatorTransform(task.make_operator("expert"), seed=0),
                   HumanConfidenceTransform(**settings["human"])]

@@ -2,12 +2,12 @@
 
 ``--task lunarlander`` (default): A2C. Both train with the recipe's number of envs and
 rollout length (``env.num_envs`` x ``collector.rollout_length`` of
-``recipes/pretrain_a2c_lunarlander.yaml``; ours: TargetLunarLanders with the pad at the
-centre in one native batched env, SB3: LunarLander-v3), Table A1's hyperparameters. SB3
-is built as its docs recommend, ``make_vec_env`` (a ``DummyVecEnv`` of ``Monitor``-wrapped
-envs), but with ``render_mode=None``: ``make_vec_env``'s default ``render_mode="rgb_array"``
-keeps a Box2D body per flame particle that only ``render()`` removes and would slow SB3
-down unfairly. Ours includes the Q critic's updates, which SB3's A2C does not do.
+``recipes/pretrain_a2c_lunarlander.yaml``; ours: the goal-blind machine on TargetLunarLanders
+with the pad at the centre in one native batched env, SB3: LunarLander-v3), Table A1's
+hyperparameters. SB3 is built as its docs recommend, ``make_vec_env`` (a ``DummyVecEnv`` of
+``Monitor``-wrapped envs), but with ``render_mode=None``: ``make_vec_env``'s default
+``render_mode="rgb_array"`` keeps a Box2D body per flame particle that only ``render()``
+removes and would slow SB3 down unfairly. Ours includes the Q critic's updates, which SB3's A2C does not do.
 
 ``--task uav``: DDPG at the same update-to-data ratio, batch, networks and random start
 (``recipes/pretrain_ddpg_uav.yaml``: 16 envs x 10 steps per round, 0.25 gradient steps
@@ -39,6 +39,7 @@ import torch
 from omegaconf import DictConfig
 
 from dcsc_torchrl.config import load_config
+from dcsc_torchrl.networks import view_recipe_settings
 from dcsc_torchrl.recipes.configs import RECIPES_DIR
 
 RECIPES = RECIPES_DIR
@@ -50,7 +51,7 @@ class Comparison:
 
     recipe: str  # module in recipes/ (its yaml beside it)
     frames_per_episode: int  # sizes the recipe's episode budget from --frames
-    no_eval: str  # the override that switches the recipe's final evaluation off
+    settings: tuple[str, ...]  # the recipe's overrides: its final evaluation off, SB3's task
     sb3: Callable[[DictConfig, int, int, int], float]  # (cfg, frames, envs, rollout) -> frames/s
     ours_label: str
     sb3_label: str
@@ -65,7 +66,7 @@ def ours(task: str, frames: int, out: Path, *overrides: str) -> tuple[float, int
     bench = TASKS[task]
     main = importlib.import_module(f"dcsc_torchrl.recipes.{bench.recipe}").main
     start = time.perf_counter()
-    main(["--out", str(out), f"train.episodes={max(1, frames // bench.frames_per_episode)}", bench.no_eval,
+    main(["--out", str(out), f"train.episodes={max(1, frames // bench.frames_per_episode)}", *bench.settings,
           *overrides])
     elapsed = time.perf_counter() - start
     done = int(pd.read_csv(out / "train.csv")["frames"].iloc[-1])
@@ -114,10 +115,10 @@ def _learn(model, env, frames: int) -> float:
 
 
 TASKS = {
-    "lunarlander": Comparison("pretrain_a2c_lunarlander", 110, "eval.episodes=0", sb3_a2c,
+    "lunarlander": Comparison("pretrain_a2c_lunarlander", 110, ("eval.episodes=0", *view_recipe_settings("blind")), sb3_a2c,
                               "dcsc-torchrl A2C recipe (incl. the Q critic)",
                               "Stable-Baselines3 A2C (`render_mode=None`)"),
-    "uav": Comparison("pretrain_ddpg_uav", 120, "eval.scenarios=0", sb3_ddpg,
+    "uav": Comparison("pretrain_ddpg_uav", 120, ("eval.scenarios=0",), sb3_ddpg,
                       "dcsc-torchrl DDPG recipe", "Stable-Baselines3 DDPG"),
 }
 

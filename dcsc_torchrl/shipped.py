@@ -1,8 +1,8 @@
 """The machines that ship with the package: the paper's setting, pretraining seed 0, weights only.
 
-``dcsc_torchrl/pretrained/<task>_seed0.pt`` holds the actor and critic state dicts of
-``dcsc pretrain <task> seed=0`` (the recipe's defaults: 500 episodes), the network config
-they were built with, the greedy return of one recorded episode and the command that
+``dcsc_torchrl/pretrained/<task>[_<view>]_seed0.pt`` holds the actor and critic state dicts
+of ``dcsc pretrain <task> seed=0`` (500 episodes; LunarLander's in both machine views), the
+network config they were built with, the greedy return of one recorded episode and the command that
 produced them (also in ``pretrained/README.md``). They load into the recipe's own
 networks (:attr:`Task.make_networks`), so ``dcsc run <task> pretrain.shipped=true``,
 ``dcsc play --assist dcsc`` and a first try work without pretraining; ``make reproduce``
@@ -29,9 +29,10 @@ GREEDY_SEED = 12_345
 
 
 def shipped_path(task: Task, observes: str | None = None) -> Path:
-    """Where ``task``'s shipped machine lies; for LunarLander, the one that ``observes`` (``blind``
-    when ``None``: the goal-blind machine, ``<task>_seed0.pt``; ``target``: ``<task>_target_seed0.pt``)."""
-    view = "" if observes in (None, "blind") else f"_{observes}"
+    """Where ``task``'s shipped machine lies: ``<task>_seed0.pt`` for a task with one machine
+    (``observes`` ``None``, the UAV), ``<task>_<observes>_seed0.pt`` for LunarLander's two
+    (``target``, the paper's; ``blind``, the goal-blind one)."""
+    view = "" if observes is None else f"_{observes}"
     return SHIPPED_DIR / f"{task.name}{view}_seed{SHIPPED_SEED}.pt"
 
 

@@ -33,7 +33,7 @@ from dcsc_torchrl.checkpoint import (
 from dcsc_torchrl.cli import build_parser, main
 from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
 from dcsc_torchrl.methods import METHOD_NAMES as METHODS
-from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic
+from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic, lunar_machine_dims
 from dcsc_torchrl.recipes import grid, machines
 from dcsc_torchrl.recipes.configs import RECIPES_DIR as RECIPES
 from dcsc_torchrl.recipes.folder import RUN_RECORD, prepare_results
@@ -53,11 +53,12 @@ def one_line_error(capsys) -> str:
 
 @pytest.fixture(scope="module")
 def machine_dir(tmp_path_factory) -> Path:
-    """``pretrain.out_dir`` holding seed 0's checkpoint: a small untrained LunarLander machine."""
+    """``pretrain.out_dir`` holding seed 0's checkpoint: a small untrained LunarLander machine
+    that sees the pad (the protocol's default view)."""
     out = tmp_path_factory.mktemp("pretrain")
     torch.manual_seed(0)
-    network = {"hidden": [16, 16], "actor_dropout": 0.05}
-    actor = lunar_actor(network["hidden"], network["actor_dropout"])
+    network = {"hidden": [16, 16], "actor_dropout": 0.05, "observes": "target"}
+    actor = lunar_actor(network["hidden"], network["actor_dropout"], obs_dims=lunar_machine_dims("target"))
     qvalue = lunar_critic(network["hidden"], 4, obs_dims=LUNAR_QVALUE_DIMS)
     save_checkpoint(checkpoint_path(out, 0), task="lunarlander",
                     payload={"config": {"network": network}, "state": {"actor": actor.state_dict(),
@@ -208,7 +209,7 @@ def test_play_looks_where_run_looks_then_flies_the_shipped_machine(tmp_path, mon
     main(["play", "lunarlander"])
     err = capsys.readouterr().err
     assert f"no lunarlander checkpoint at {checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])}" in err
-    assert "shipped machine (lunarlander_seed0.pt)" in err
+    assert "shipped machine (lunarlander_target_seed0.pt)" in err  # the paper's machine, which sees the pad
 
 
 # -- checkpoints ----------------------------------------------------------------------

@@ -78,5 +78,5 @@ def test_the_protocols_view_pretrains_a_machine_that_sees_it_on_the_pads_it_need
 
 
 def test_each_view_ships_its_own_file():
-    assert shipped_path(LUNAR) == shipped_path(LUNAR, "blind") != shipped_path(LUNAR, "target")
+    assert shipped_path(LUNAR, "blind").name == "lunarlander_blind_seed0.pt"
     assert shipped_path(LUNAR, "target").name == "lunarlander_target_seed0.pt"

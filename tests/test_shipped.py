@@ -18,12 +18,12 @@ def recipe_config(task_name: str, overrides: list[str] = ()):
     return load_config(CONFIGS[task_name].pretrain, list(overrides))
 
 
-SHIPPED = [("lunarlander", None), ("lunarlander", "target"), ("uav", None)]
-"""Every shipped machine: (task, what it observes; ``None``: the task's default file)."""
+SHIPPED = [("lunarlander", "blind"), ("lunarlander", "target"), ("uav", None)]
+"""Every shipped machine: (task, what it observes; ``None``: a task with one machine)."""
 
 
 def view_settings(observes: str | None) -> list[str]:
-    """The recipe settings of a machine that ``observes`` (none for the default file)."""
+    """The recipe settings of a machine that ``observes`` (none for a task with one machine)."""
     return [] if observes is None else view_recipe_settings(observes)
 
 

@@ -185,7 +185,7 @@ def test_machine_rows_are_the_simulated_cells_own(tmp_path, monkeypatch):
     folder = study("lunarlander", tmp_path, ScriptedParticipant(PEOPLE["lunarlander"][1]))
     task = get_task("lunarlander")
     cfg = task_config(task, [*SHIPPED, *SMALL], quick=True)
-    actor, critic = shipped_machine(task, "blind")
+    actor, critic = shipped_machine(task, cfg.pretrain.observes)
     settings = cell_settings(cfg)
     cell = run_cell(task, task.make_operator("expert"), actor, critic, operator_name="expert", pretrain_seed=0,
                     methods=("machine",), **settings)
