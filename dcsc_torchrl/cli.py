@@ -1,6 +1,7 @@
 """The ``dcsc`` command: one entry point for every job of the project (docs/cli.md).
 
     dcsc pretrain {lunarlander,uav} [--quick] [--resume] [--out DIR] [key=value ...]
+    dcsc copilot [--quick] [--resume] [--out DIR] [key=value ...]
     dcsc run {lunarlander,uav} [--quick] [--out DIR] [--methods M ...] [--operators P ...] [--fresh] [key=value ...]
     dcsc sweep [--quick] [--out DIR] [--address ADDR] [--fresh] [key=value ...]
     dcsc reproduce [--quick] [--out DIR] [--fresh] [key=value ...]
@@ -26,11 +27,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from dcsc_torchrl.recipes.configs import CONFIGS, MAP_CONFIG, SWEEP_CONFIG
+from dcsc_torchrl.recipes.configs import CONFIGS, COPILOT_CONFIG, MAP_CONFIG, SWEEP_CONFIG
 from dcsc_torchrl.recipes.options import (
     RUN_EPILOG,
     Parser,
     add_common_options,
+    add_copilot_options,
     add_map_options,
     add_play_options,
     add_recipe_options,
@@ -62,6 +64,17 @@ def _pretrain(args: argparse.Namespace) -> Path:
                    out=args.out)
     _say(f"checkpoint in {out / 'checkpoint.pt'}")
     return out
+
+
+def _copilot(args: argparse.Namespace) -> Path:
+    from dcsc_torchrl.config import load_config
+
+    load_config(COPILOT_CONFIG, args.overrides, quick=args.quick, quiet=True)  # before torch loads
+    from dcsc_torchrl.recipes.copilot_lunarlander import copilot_config, train
+
+    path = train(copilot_config(args.overrides, quick=args.quick, out=args.out), resume=args.resume)
+    _say(f"copilot in {path}")
+    return path
 
 
 def _run(args: argparse.Namespace) -> Path:
@@ -157,6 +170,8 @@ def _ship(args: argparse.Namespace) -> Path:
 
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], Any], Callable[[argparse.Namespace], Any]]] = {
     "pretrain": ("pretrain a machine policy (A2C for lunarlander, DDPG for uav)", add_recipe_options, _pretrain),
+    "copilot": ("train Reddy et al.'s copilot for lunarlander: DQN with surrogate pilots in the loop",
+                add_copilot_options, _copilot),
     "run": ("the shared-control protocol of one task, every cell, resumable", add_run_options, _run),
     "sweep": ("the protocol's grid of cells as Ray tasks, here or on a cluster", add_sweep_options, _sweep),
     "reproduce": ("pretrain, run both experiments, write the report", add_reproduce_options, _reproduce),

@@ -145,6 +145,20 @@ LIMITS: dict[str, Range] = {
     "scenarios.blend_runs": NON_NEGATIVE,
     "scenarios.validation_scenarios": COUNT,
     "scenarios.first_validation_seed": NON_NEGATIVE,
+    # dcsc copilot (Reddy et al.'s DQN)
+    "env.rollout_length": COUNT,
+    "dqn.lr": POSITIVE,
+    "dqn.batch_size": COUNT,
+    "dqn.buffer_size": COUNT,
+    "dqn.gamma": UNIT,
+    "dqn.target_update_interval": COUNT,
+    "dqn.updates_per_frame": POSITIVE,
+    "dqn.exploration_fraction": STEP,
+    "dqn.exploration_final_eps": UNIT,
+    "dqn.train_alpha": UNIT,
+    "alpha.grid": UNIT,
+    "alpha.first_seed": NON_NEGATIVE,
+    "alpha.scenarios": COUNT,
     # dcsc sweep
     "pretrain_seeds": NON_NEGATIVE,
     "ray.workers": COUNT,
@@ -156,6 +170,7 @@ list); keys a config lacks are skipped, ``null`` passes. Every number must be fi
 NULLABLE: dict[str, Any] = {
     "arbiter.hula_threshold": 0.5,
     "ida.expert": "runs/pretrain/seed0/checkpoint.pt",
+    "reddy.copilots": ["runs/copilot_lunarlander/copilot.pt"],
     "protocol.max_steps": 1,
     "operators": ["expert"],
     "pretrain_seeds": [0],
@@ -165,11 +180,12 @@ NULLABLE: dict[str, Any] = {
 """The type of each key whose yaml value is ``null`` (a default computed at run time), given as an
 example value: an override of it is checked as one of a key with that value in the yaml would be."""
 
-NON_EMPTY = frozenset({"pretrain.seeds", "operator.presets", "tasks", "operators", "pretrain_seeds", "methods"})
+NON_EMPTY = frozenset({"pretrain.seeds", "operator.presets", "tasks", "operators", "pretrain_seeds", "methods", "pool",
+                       "alpha.grid"})
 """Lists that need an entry (``null`` passes where it is the default)."""
 
 DISTINCT = frozenset({"pretrain.seeds", "operator.presets", "arbiter.constant_betas", "warmup.blend_betas", "tasks",
-                      "operators", "pretrain_seeds", "methods"})
+                      "operators", "pretrain_seeds", "methods", "pool", "alpha.grid"})
 """Lists of things each run once: a repeated entry is dropped, with a warning (it would count twice)."""
 
 FIXED = frozenset({"task"})

@@ -14,6 +14,10 @@ ida           fixed     :class:`InterventionArbiter` (IDA): the machine acts whe
 ida_expert    fixed     the same rule on an expert's Q given to the cell (IDA as its
                         paper runs it, e.g. a converged machine's critic); run only
                         when named, with the expert given
+reddy         fixed     Reddy et al.'s copilot (:mod:`dcsc_torchrl.copilot`): a DQN
+                        trained with surrogate pilots is the machine, its tolerance
+                        rule the arbiter; discrete tasks only; run only when named,
+                        with a trained copilot given
 dcsc          learned   :class:`ConfidenceArbiter` (Eq. 15 as printed), theta learned online
 dcsc_centred  learned   :class:`CentredConfidenceArbiter`, theta learned online
 dcsc_frozen   frozen    a learned arbiter fed its confidences' collaboration means
@@ -59,8 +63,9 @@ class Method:
             learning online), ``frozen`` (the ablation of a learned arbiter) or ``sweep``
             (once per constant beta).
         form: the arbiter form of a learned method (``paper`` or ``centred``).
-        default: whether a run with no method list runs it (``ida_expert`` needs an input
-            the protocol does not make, an expert's Q, so it runs only when named).
+        default: whether a run with no method list runs it (``ida_expert`` and ``reddy`` need
+            an input the protocol does not make, an expert's Q or a trained copilot, so they
+            run only when named).
     """
 
     name: str
@@ -79,6 +84,7 @@ METHODS: dict[str, Method] = {
         Method("rule", "rule-based switch", "fixed"),
         Method("ida", "IDA (Algorithm 1's Q)", "fixed"),
         Method("ida_expert", "IDA (an expert's Q)", "fixed", default=False),
+        Method("reddy", "Reddy et al.'s copilot", "fixed", default=False),
         Method("dcsc", "DC-SC (Eq. 15)", "learned", form="paper"),
         Method("dcsc_centred", "DC-SC (centred)", "learned", form="centred"),
         Method("dcsc_frozen", "DC-SC, confidences frozen", "frozen"),
@@ -88,7 +94,7 @@ METHODS: dict[str, Method] = {
 """Every method, in the order of the protocol and the report."""
 METHOD_NAMES = tuple(METHODS)
 DEFAULT_METHODS = tuple(name for name, method in METHODS.items() if method.default)
-"""The methods a run with no method list runs (every method but ``ida_expert``)."""
+"""The methods a run with no method list runs (every method but ``ida_expert`` and ``reddy``)."""
 BEST_CONSTANT = Method("best_constant", "best constant β (oracle)", "oracle")
 """The report's row for the sweep's best beta (picked on the scenarios it is scored on)."""
 ARBITER_FORMS = tuple(m.form for m in METHODS.values() if m.kind == "learned")
@@ -96,21 +102,23 @@ ARBITER_FORMS = tuple(m.form for m in METHODS.values() if m.kind == "learned")
 
 def task_methods(task: Task, methods: Sequence[str] = DEFAULT_METHODS) -> tuple[str, ...]:
     """``methods`` that ``task`` defines: all of them, less ``rule`` for a task without an
-    :attr:`~dcsc_torchrl.tasks.Task.authority_rule`.
+    :attr:`~dcsc_torchrl.tasks.Task.authority_rule` and ``reddy`` for a continuous one.
 
     Examples:
         >>> from dcsc_torchrl.tasks import get_task
         >>> "rule" in task_methods(get_task("lunarlander")), "rule" in task_methods(get_task("uav"))
         (True, False)
     """
-    return tuple(m for m in methods if m != "rule" or task.authority_rule is not None)
+    return tuple(m for m in methods if (m != "rule" or task.authority_rule is not None)
+                 and (m != "reddy" or task.discrete))
 
 
 def check_task_methods(task: Task, methods: Sequence[str]) -> None:
     """Refuses ``methods`` that ``task`` does not define (``rule`` without an authority rule)."""
     undefined = [m for m in methods if m not in task_methods(task, METHOD_NAMES)]
     if undefined:
-        raise ValueError(f"task {task.name} does not define method(s) {', '.join(undefined)}: it has no authority rule")
+        why = "no authority rule" if "rule" in undefined else "continuous actions (Reddy's copilot is built for keys)"
+        raise ValueError(f"task {task.name} does not define method(s) {', '.join(undefined)}: it has {why}")
 
 
 def learned_method(form: str) -> str:
@@ -143,7 +151,8 @@ def make_arbiter(
     ``authority_rule``), ``ida`` an :class:`InterventionArbiter` on a frozen copy of
     ``q_value`` (``discrete``: whether it gives a value per key), ``ida_expert`` the same on
     ``expert_q``. ``dcsc_frozen`` wraps a learned arbiter
-    (:class:`FrozenConfidenceArbiter`), so the protocol builds it.
+    (:class:`FrozenConfidenceArbiter`), so the protocol builds it; ``reddy`` brings its own
+    machine too (:meth:`~dcsc_torchrl.copilot.TrainedCopilot.policy`).
     """
     from dcsc_torchrl import arbiters
 
@@ -174,7 +183,9 @@ def make_arbiter(
         if constant_beta is None:
             raise ValueError("the constant arbiter needs constant_beta")
         return arbiters.ConstantArbiter(constant_beta, action_dims)
-    built_here = [name for name in METHOD_NAMES if name != "dcsc_frozen"]
+    if method == "reddy":
+        raise ValueError("method reddy brings its own machine: a TrainedCopilot's policy() builds its shared policy")
+    built_here = [name for name in METHOD_NAMES if name not in ("dcsc_frozen", "reddy")]
     raise ValueError(f"method must be one of {', '.join(built_here)}, got {method!r}")
 
 

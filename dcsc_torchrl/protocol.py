@@ -28,6 +28,7 @@ from torchrl.envs.utils import ExplorationType
 
 from dcsc_torchrl.arbiters import Arbiter, FrozenConfidenceArbiter
 from dcsc_torchrl.confidence import check_machine_params, machine_confidence
+from dcsc_torchrl.copilot import TrainedCopilot
 from dcsc_torchrl.episodes import EpisodeBatch, concat_runs, run_scenarios
 from dcsc_torchrl.machine import calibrated_uncertainty_scale
 from dcsc_torchrl.methods import (
@@ -263,6 +264,7 @@ class ProtocolCell:
         human, machine, arbiter, online, protocol: the settings of :func:`run_cell`.
         progress: called with a short line as each run starts.
         expert_q: the Q network method ``ida_expert`` reads.
+        copilot: the trained copilot method ``reddy`` runs.
         machine_alone_operator: the operator in the loop of the machine-alone runs, whose
             actions nobody reads (default: ``operator``; a person cannot fly a batch).
     """
@@ -271,8 +273,9 @@ class ProtocolCell:
                  base: dict[str, Any], pretrain_seed: int, human: Mapping[str, Any], machine: MachineSettings,
                  arbiter: ArbiterSettings, online: Mapping[str, Any], protocol: ProtocolSettings,
                  progress: Callable[[str], None] | None = None, expert_q: torch.nn.Module | None = None,
-                 machine_alone_operator: HumanOperator | None = None) -> None:
+                 copilot: TrainedCopilot | None = None, machine_alone_operator: HumanOperator | None = None) -> None:
         self.task, self.operator, self.machine_net, self.expert_q = task, operator, machine_net, expert_q
+        self.copilot = copilot
         self.machine_alone_operator = operator if machine_alone_operator is None else machine_alone_operator
         self.base, self.pretrain_seed = base, pretrain_seed
         self.human, self.machine, self.arbiter, self.online, self.protocol = human, machine, arbiter, online, protocol
@@ -295,7 +298,12 @@ class ProtocolCell:
         return self.task.make_envs(list(seeds), self.protocol.max_steps, transforms)
 
     def policy(self, method: str, arbiter: Arbiter | None = None, **kwargs: Any) -> SharedPolicyModule:
-        """The shared policy of ``method`` (its arbiter from the cell's settings and calibration, or ``arbiter``)."""
+        """The shared policy of ``method`` (its arbiter from the cell's settings and calibration, or
+        ``arbiter``); ``reddy``'s is the copilot's own."""
+        if method == "reddy":
+            if self.copilot is None:
+                raise ValueError("method reddy runs a trained copilot: this cell has none")
+            return self.copilot.policy(self.action_spec)
         if arbiter is None:
             start = self.arbiter.start(method) if METHODS[method].kind == "learned" else {}
             arbiter = make_arbiter(method, self.task.action_dims, hula_threshold=self.hula_threshold,
@@ -475,6 +483,7 @@ def run_cell(
     trace: bool = False,
     progress: Callable[[str], None] | None = None,
     expert_q: torch.nn.Module | None = None,
+    copilot: TrainedCopilot | None = None,
 ) -> CellResult:
     """The protocol for one (task, operator, pretrained machine): calibrate, collaborate, validate.
 
@@ -496,7 +505,8 @@ def run_cell(
        ``arbiter.form`` arbiter's theta after collaboration, its confidences frozen at
        their collaboration means; ``ida`` acts on a frozen copy of the critic as its
        warm-up left it (Algorithm 1's Q, before any collaboration); ``ida_expert`` on a
-       frozen copy of ``expert_q``.
+       frozen copy of ``expert_q``; ``reddy`` is ``copilot``'s own shared policy (its Q
+       network the machine, its tolerance rule the arbiter).
 
     Args:
         task: the registered task (:data:`dcsc_torchrl.tasks.TASKS`).
@@ -515,6 +525,8 @@ def run_cell(
         progress: called with a short line as each run starts (``"validation: hula"``).
         expert_q: an expert's Q network (the task's critic shape: ``Q(s, .)`` or ``Q(s, a)``),
             which method ``ida_expert`` reads; required when ``methods`` names it.
+        copilot: Reddy et al.'s trained copilot, which method ``reddy`` runs; required when
+            ``methods`` names it, and refused when it was trained with ``operator_name``.
 
     Every run seeds torch with :func:`run_seed`, so its rows do not depend on which
     cells or methods ran before it.
@@ -525,6 +537,10 @@ def run_cell(
     check_task_methods(task, methods)
     if "ida_expert" in methods and expert_q is None:
         raise ValueError("method ida_expert reads an expert's Q: pass expert_q (e.g. a converged machine's critic)")
+    if "reddy" in methods:
+        if copilot is None:
+            raise ValueError("method reddy runs a trained copilot: pass copilot (dcsc copilot trains one)")
+        copilot.check_evaluated_next_to(operator_name)
     if "ida" in methods and online.get("theta_critic") == "authority":
         raise ValueError("method ida reads Q(s, a): it cannot run with online.theta_critic=authority, "
                          "whose critic is Q(s, beta)")
@@ -532,7 +548,8 @@ def run_cell(
     protocol = ProtocolSettings() if protocol is None else protocol
     base = {"task": task.name, "operator": operator_name, "pretrain_seed": pretrain_seed}
     cell = ProtocolCell(task, operator, machine_net, base=base, pretrain_seed=pretrain_seed, human=human, machine=machine,
-                 arbiter=arbiter, online=online, protocol=protocol, progress=progress, expert_q=expert_q)
+                 arbiter=arbiter, online=online, protocol=protocol, progress=progress, expert_q=expert_q,
+                 copilot=copilot)
     episodes, calibration = cell.calibrate(scenarios, critic_net, warmup)
     collaboration, learners, collaboration_updates = cell.collaborate(scenarios.collaboration, methods)
     validation, traces = cell.validate(scenarios.validation, methods, learners, trace=trace)

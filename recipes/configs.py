@@ -19,6 +19,8 @@ RECIPES_DIR = Path(__file__).parent
 """The folder of the recipes and their yamls."""
 SWEEP_CONFIG = RECIPES_DIR / "sweep.yaml"
 MAP_CONFIG = RECIPES_DIR / "map.yaml"
+COPILOT_CONFIG = RECIPES_DIR / "copilot_lunarlander.yaml"
+"""Reddy et al.'s copilot (``dcsc copilot``): LunarLander only."""
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,12 @@ from dcsc_torchrl.protocol import (
     run_cell,
 )
 from dcsc_torchrl.recipes.folder import TABLES, folder_lock, prepare_results, write_csv
-from dcsc_torchrl.recipes.machines import expert_q, load_machine_checkpoint, pretrained_machine
+from dcsc_torchrl.recipes.machines import (
+    copilot_for,
+    expert_q,
+    load_machine_checkpoint,
+    pretrained_machine,
+)
 from dcsc_torchrl.recipes.settings import cell_settings, check_names, task_config
 from dcsc_torchrl.report import write_task_figures, write_task_summary
 from dcsc_torchrl.runlog import Progress, write_atomic
@@ -91,11 +96,14 @@ class TaskGrid:
 def make_grid(task: str, cfg: DictConfig, presets: Sequence[str], seeds: Sequence[int], *,
               quick: bool = False) -> TaskGrid:
     """The cells of ``task`` for ``presets`` x ``seeds`` (each once, in order); ``pretrain.out_dir``
-    (and ``ida.expert``) made absolute, so that the cells can run in other processes or nodes."""
+    (and ``ida.expert``, ``reddy.copilots``) made absolute, so that the cells can run in other
+    processes or nodes."""
     given = str(cfg.pretrain.out_dir)
     cfg.pretrain.out_dir = str(Path(given).resolve())
     if cfg.ida.expert is not None:  # read by the cells too
         cfg.ida.expert = str(Path(cfg.ida.expert).resolve())
+    if cfg.reddy.copilots is not None:
+        cfg.reddy.copilots = [str(Path(path).resolve()) for path in cfg.reddy.copilots]
     seeds = list(dict.fromkeys(int(s) for s in seeds))
     grid, main_operator = cell_grid(list(dict.fromkeys(presets)), seeds, cfg.operator.main)
     cells = [Cell(task, preset, seed, trace=traced) for seed, preset, traced in grid]
@@ -114,8 +122,10 @@ def write_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: Path,
     task = get_task(cell.task)
     methods = task_methods(task, methods)
     expert = expert_q(task, cfg) if "ida_expert" in methods else None
+    copilot = copilot_for(cfg, cell.operator) if "reddy" in methods else None
     result = run_cell(task, task.make_operator(cell.operator), machine, critic, operator_name=cell.operator,
                       pretrain_seed=cell.pretrain_seed, methods=methods, trace=cell.trace, expert_q=expert,
+                      copilot=copilot,
                       **cell_settings(cfg),
                       progress=lambda line: print(f"  {cell.name}: {line}", file=sys.stderr, flush=True))
     calibration = [result.calibration] if result.calibration else []
@@ -230,12 +240,17 @@ def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], exe
     (:func:`folder_lock`: one run at a time) and claims it (:func:`prepare_results`), runs the
     cells not done yet with ``executor`` (:func:`local_executor`, or ``dcsc sweep``'s Ray
     tasks), then gathers every task's outputs (:func:`gather`, the one writer), the failures
-    reported. A grid that runs ``ida_expert`` loads its expert first (:func:`expert_q`): a missing
-    one is refused before any cell runs."""
+    reported. A grid that runs ``ida_expert`` loads its expert first (:func:`expert_q`), one that
+    runs ``reddy`` each cell's copilot (:func:`copilot_for`): a missing one is refused before any
+    cell runs."""
     for grid in grids:
         writable_folder(out / grid.task)
-        if "ida_expert" in task_methods(get_task(grid.task), methods):
+        grid_methods = task_methods(get_task(grid.task), methods)
+        if "ida_expert" in grid_methods:
             expert_q(get_task(grid.task), grid.cfg)
+        if "reddy" in grid_methods:
+            for cell in grid.cells:
+                copilot_for(grid.cfg, cell.operator)
     with contextlib.ExitStack() as locks:
         for grid in grids:
             locks.enter_context(folder_lock(out / grid.task))

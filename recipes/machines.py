@@ -1,6 +1,7 @@
 """Where a cell's machine comes from: the checkpoint of its pretraining seed, pretrained (or
 resumed) first when missing, or the machine shipped with the package; the table of the
-recipe that pretrains each task's machine; and the expert's Q that ``ida_expert`` reads."""
+recipe that pretrains each task's machine; the expert's Q that ``ida_expert`` reads and the
+copilot that ``reddy`` runs."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from omegaconf import DictConfig
 
 from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
 from dcsc_torchrl.config import ConfigError
+from dcsc_torchrl.copilot import TrainedCopilot, load_copilot
 from dcsc_torchrl.networks import machine_from_checkpoint, machine_view
 from dcsc_torchrl.recipes.settings import pretrain_config
 from dcsc_torchrl.tasks import Task
@@ -103,6 +105,30 @@ def ready_machine(task: Task, cfg: DictConfig, checkpoint: Path | None = None) -
         print(f"no {task.name} checkpoint at {checkpoint_path(cfg.pretrain.out_dir, cfg.pretrain.seeds[0])}: flying "
               f"with the shipped machine ({path.name})", file=sys.stderr, flush=True)
     return machine_from_checkpoint(load_machine_checkpoint(task, cfg, path), task)
+
+
+def copilot_for(cfg: DictConfig, operator: str) -> TrainedCopilot:
+    """Method ``reddy``'s copilot next to ``operator``: the first of ``reddy.copilots`` that was
+    not trained with it (Reddy's copilot never meets its training pilots in an evaluation).
+
+    Raises:
+        ConfigError: ``reddy.copilots`` is not set, names a file that holds no copilot, or every
+            copilot was trained with ``operator`` (one line).
+    """
+    paths = cfg.reddy.copilots
+    if not paths:
+        raise ConfigError("method reddy needs reddy.copilots: trained copilots (dcsc copilot writes copilot.pt), "
+                          "e.g. reddy.copilots=[runs/copilot_lunarlander/copilot.pt]")
+    pools = []
+    for path in paths:
+        if not Path(path).is_file():
+            raise ConfigError(f"reddy.copilots: no copilot at {path}")
+        copilot = load_copilot(path)
+        if operator not in copilot.operators:
+            return copilot
+        pools.append(f"{path}: {', '.join(copilot.operators)}")
+    raise ConfigError(f"reddy.copilots: every copilot was trained with operator {operator!r} ({'; '.join(pools)}): "
+                      f"train one without it (dcsc copilot pool=[...])")
 
 
 def expert_q(task: Task, cfg: DictConfig) -> torch.nn.Module:

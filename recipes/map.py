@@ -9,6 +9,11 @@ missing. Then ``DIR/map.csv`` (:func:`~dcsc_torchrl.sharing_map.sharing_map`), `
 and ``DIR/fig_map.png`` set each method's validation success against the better partner
 alone, per scenario, with 95% CIs. A machine whose cells are done is not run again, so a
 stopped map resumes; ``--fresh`` starts every machine's folder over.
+
+The field's assistants need inputs of their own, made before any cell runs: ``ida_expert``
+reads the critic of machine ``expert`` (pretrained first when missing), ``reddy`` the
+copilots of ``copilots`` (``dcsc copilot``, trained into ``{pretrain_dir}/copilot-<name>/``
+when missing; each cell takes the first not trained with its operator).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import torch
 from omegaconf import DictConfig
 
 from dcsc_torchrl.config import ConfigError, distinct, load_config, writable_folder
+from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.methods import METHOD_NAMES, METHODS
 from dcsc_torchrl.recipes.configs import MAP_CONFIG
 from dcsc_torchrl.recipes.grid import TaskGrid, checked_grid, run_grid
@@ -37,6 +43,7 @@ from dcsc_torchrl.sharing_map import (
     plot_map,
     sharing_map,
 )
+from dcsc_torchrl.tasks import get_task
 
 
 def map_config(overrides: Sequence[str] = (), *, quick: bool = False) -> DictConfig:
@@ -46,7 +53,36 @@ def map_config(overrides: Sequence[str] = (), *, quick: bool = False) -> DictCon
     cfg.selected = check_names("selected", "machine", distinct("selected", cfg.selected), list(cfg.machines))
     cfg.methods = check_names("methods", "method", distinct("methods", cfg.methods), list(METHOD_NAMES))
     cfg.operators = distinct("operators", cfg.operators)
+    check_names("expert", "machine", [cfg.expert], list(cfg.machines))
+    for name, pool in cfg.copilots.items():
+        check_names(f"copilots.{name}", "operator preset", list(pool), list(PRESETS))
     return cfg
+
+
+def ready_assistants(cfg: DictConfig, *, quick: bool) -> list[str]:
+    """The protocol settings of the assistants the map's methods read, made when missing:
+    ``ida.expert`` (machine ``expert``'s seed-0 checkpoint) and ``reddy.copilots``."""
+    from dcsc_torchrl.checkpoint import checkpoint_path
+    from dcsc_torchrl.recipes.copilot_lunarlander import copilot_config, train
+    from dcsc_torchrl.recipes.machines import pretrained_machine
+
+    settings = []
+    if "ida_expert" in cfg.methods:
+        expert_cfg = checked_grid(cfg.task, quick=quick, overrides=machine_overrides(cfg, cfg.expert),
+                                  operators=cfg.operators, option="operators").cfg
+        pretrained_machine(get_task(cfg.task), expert_cfg, 0, quick=quick)
+        settings.append(f"ida.expert={checkpoint_path(expert_cfg.pretrain.out_dir, 0)}")
+    if "reddy" in cfg.methods:
+        paths = []
+        for name, pool in cfg.copilots.items():
+            folder = (Path(cfg.pretrain_dir) / f"copilot-{name}").resolve()
+            if not (folder / "copilot.pt").is_file():
+                print(f"map: training copilot {name} ({', '.join(pool)})", flush=True)
+                train(copilot_config([f"pool=[{','.join(pool)}]"], quick=quick, out=folder),
+                      resume=(folder / "checkpoint.pt").is_file())
+            paths.append(str(folder / "copilot.pt"))
+        settings.append(f"reddy.copilots=[{','.join(paths)}]")
+    return settings
 
 
 def machine_overrides(cfg: DictConfig, name: str) -> list[str]:
@@ -102,6 +138,8 @@ def run_map(out: Path | None = None, *, quick: bool = False, overrides: Sequence
     """Every selected machine's grid (resumable), then the map; returns ``map.md``."""
     out = writable_folder((out or Path("results/quick/map" if quick else "results/map")).resolve())
     cfg = map_config(overrides, quick=quick)
+    machine_grids(cfg, quick=quick)  # every machine's config checked before any assistant is made
+    cfg.protocol = [*cfg.protocol, *ready_assistants(cfg, quick=quick)]
     grids = machine_grids(cfg, quick=quick)
     run = executor(workers)
     torch.set_num_threads(next(iter(grids.values())).cfg.threads)

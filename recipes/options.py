@@ -109,6 +109,18 @@ def add_recipe_options(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
     return parser
 
 
+def add_copilot_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``dcsc copilot``: ``[--quick] [--resume] [--out DIR] [key=value ...]``."""
+    parser.add_argument("--quick", action="store_true", help="the tiny setting of the yaml's quick block (tests)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the training from its last checkpoint; refused if the config differs")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="run directory (default: logger.out_dir of recipes/copilot_lunarlander.yaml); "
+                             "copilot.pt there is what reddy.copilots names")
+    _overrides(parser, "pool=[noisy,laggy,distracted] train.frames=50000")
+    return parser
+
+
 def add_run_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dcsc run`` (and ``python recipes/shared_control.py``) after the task."""
     parser.add_argument("--quick", action="store_true", help="the tiny setting of the yaml's quick block (tests)")
@@ -186,9 +198,13 @@ def add_report_options(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
 
 def add_play_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dcsc play`` (the ones :func:`dcsc_torchrl.recipes.play.run_play` reads)."""
-    parser.add_argument("--assist", choices=["dcsc", "ida", "none"], default="dcsc",
+    parser.add_argument("--assist", choices=["dcsc", "ida", "reddy", "none"], default="dcsc",
                         help="share control with the pretrained machine: DC-SC's learned arbiter (dcsc) or IDA's "
-                             "intervention on its Q critic (ida); or fly alone (none)")
+                             "intervention on its Q critic (ida); with Reddy et al.'s trained copilot (reddy); "
+                             "or fly alone (none)")
+    parser.add_argument("--copilot", type=Path, default=Path("runs/copilot_lunarlander/copilot.pt"),
+                        help="the copilot of --assist reddy (dcsc copilot writes it; default "
+                             "runs/copilot_lunarlander/copilot.pt)")
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="LunarLander pretraining checkpoint for --assist dcsc / ida (default: where dcsc run "
                              "reads seed 0's, <pretrain.out_dir>/seed0/checkpoint.pt of "

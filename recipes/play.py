@@ -1,6 +1,7 @@
 """``dcsc play lunarlander``: fly TargetLunarLander yourself, alone or with DC-SC.
 
-    dcsc play lunarlander [--assist dcsc|ida|none] [--checkpoint PATH] [--episodes N] [--seed S] [--out DIR]
+    dcsc play lunarlander [--assist dcsc|ida|reddy|none] [--checkpoint PATH] [--copilot PATH]
+                          [--episodes N] [--seed S] [--out DIR]
 
 The frames of a ``render_mode="rgb_array"`` TargetLunarLander go to the
 :class:`~dcsc_torchrl.humans.KeyboardPilot`'s window. With ``--assist dcsc`` the
@@ -10,7 +11,9 @@ and theta (and the Q critic, unless the yaml's ``online.critic_lr`` is 0) learn 
 in Algorithm 1, once every ``protocol.rollout_length`` frames; b_h, b_m and beta are drawn live on screen. With
 ``--assist ida`` the machine takes a frame exactly where its pretrained Q critic rates the
 machine's key above yours (IDA's intervention, :class:`~dcsc_torchrl.arbiters.InterventionArbiter`),
-nothing learning. Alone, your b_h (Eqs. 6, 9) and last RT are.
+nothing learning. With ``--assist reddy`` Reddy et al.'s trained copilot (``dcsc copilot``,
+``--copilot``) keeps your key where it is within its tolerance of the copilot's best and
+presses its own otherwise (:mod:`dcsc_torchrl.copilot`). Alone, your b_h (Eqs. 6, 9) and last RT are.
 
 Every play writes what the simulated runs write, into ``--out`` (default
 ``results/play/``): ``episodes.csv`` (one row per finished episode: method, phase
@@ -41,6 +44,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from dcsc_torchrl.batched_envs import LUNAR_ID, LUNAR_INFO_KEYS
 from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.config import writable_folder
+from dcsc_torchrl.copilot import TrainedCopilot, load_copilot
 from dcsc_torchrl.humans.keyboard import KeyboardPilot, NoDisplayError
 from dcsc_torchrl.humans.operator_alone import operator_only_policy
 from dcsc_torchrl.networks import machine_from_checkpoint
@@ -73,6 +77,13 @@ def play_config() -> DictConfig:
     return load_config(CONFIGS[TASK.name].protocol)
 
 
+def load_play_copilot(path: Path) -> TrainedCopilot:
+    """The copilot of ``--assist reddy``, or a FileNotFoundError that says how to get one."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no copilot at {path}: train one with `dcsc copilot`, or pass --copilot PATH")
+    return load_copilot(path)
+
+
 def load_machine(path: Path) -> tuple[nn.Module, nn.Module]:
     """The pretrained LunarLander actor and Q critic, or a FileNotFoundError that says how to get them."""
     if not Path(path).is_file():
@@ -103,9 +114,12 @@ def assist_method(cfg: DictConfig) -> str:
 
 
 def make_policy(env: TransformedEnv, machine: nn.Module | None, cfg: DictConfig | None = None, *,
-                q_value: nn.Module | None = None) -> TensorDictModuleBase:
+                q_value: nn.Module | None = None, copilot: TrainedCopilot | None = None) -> TensorDictModuleBase:
     """The shared policy around ``machine`` (as the simulated runs build it), or the pilot alone:
-    DC-SC's learned arbiter, or with ``q_value`` IDA's intervention on that Q critic."""
+    DC-SC's learned arbiter, with ``q_value`` IDA's intervention on that Q critic; or
+    ``copilot``'s own (Reddy et al.'s copilot and its tolerance rule)."""
+    if copilot is not None:
+        return copilot.policy(env.full_action_spec["action"])
     if machine is None:
         return operator_only_policy()
     from dcsc_torchrl.methods import build_policy, make_arbiter
@@ -283,8 +297,9 @@ def run_play(args: argparse.Namespace) -> None:
     cfg = play_config()
     confidence = HumanConfidenceTransform(**cfg.human)
     try:
-        networks = ready_machine(TASK, cfg, args.checkpoint) if args.assist != "none" else None
-        method = {"dcsc": assist_method(cfg), "ida": "ida", "none": "operator"}[args.assist]
+        networks = ready_machine(TASK, cfg, args.checkpoint) if args.assist in ("dcsc", "ida") else None
+        copilot = load_play_copilot(args.copilot) if args.assist == "reddy" else None
+        method = {"dcsc": assist_method(cfg), "ida": "ida", "reddy": "reddy", "none": "operator"}[args.assist]
         recorder = PlayRecorder(args.out, method, args.participant)  # its folder checked before the window opens
         render_env = gym.make(LUNAR_ID, render_mode="rgb_array")
         pilot = KeyboardPilot(frame_source=render_env.render, t_d=confidence.t_d)
@@ -292,7 +307,7 @@ def run_play(args: argparse.Namespace) -> None:
         raise SystemExit(f"dcsc play: {error}") from error
     env = make_play_env(render_env, pilot, confidence, args.seed)
     machine, critic = networks if networks is not None else (None, None)
-    policy = make_policy(env, machine, cfg, q_value=critic if args.assist == "ida" else None)
+    policy = make_policy(env, machine, cfg, q_value=critic if args.assist == "ida" else None, copilot=copilot)
     learner = make_learner(policy, critic, cfg) if args.assist == "dcsc" else None
     print("arrow keys (or W/A/D): up = main engine, left/right = side engines; Esc quits")
     try:

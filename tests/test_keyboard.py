@@ -272,7 +272,7 @@ def test_a_key_released_during_the_prompt_is_released():
 
 
 def play_session(machine, *, critic=None, out=None, episodes=1, events=list, exploration_type=ExplorationType.RANDOM,
-                 theta_init=None, ida=False):
+                 theta_init=None, ida=False, copilot=None):
     clock = FakeClock()
     render_env = gym.make(LUNAR_ID, render_mode="rgb_array")
     screen = RecordingScreen()
@@ -288,11 +288,11 @@ def play_session(machine, *, critic=None, out=None, episodes=1, events=list, exp
     cfg = play_config()
     if theta_init is not None:
         cfg.arbiter.centred.theta_init = theta_init
-    policy = make_policy(env, machine, cfg, q_value=critic if ida else None)
+    policy = make_policy(env, machine, cfg, q_value=critic if ida else None, copilot=copilot)
     learner = make_learner(policy, critic, cfg) if critic is not None and not ida else None
     recorder = None
     if out is not None:
-        method = "ida" if ida else "dcsc_centred" if machine is not None else "operator"
+        method = "ida" if ida else "reddy" if copilot is not None else "dcsc_centred" if machine is not None else "operator"
         recorder = PlayRecorder(out, method, "tester")
     summaries = play(env, policy, pilot, episodes=episodes, learner=learner, rollout_length=5, recorder=recorder,
                      exploration_type=exploration_type)
@@ -370,6 +370,26 @@ def test_play_with_ida_hands_over_whole_frames_by_the_machines_q_and_learns_noth
     trace = pd.read_csv(tmp_path / "study" / "trace.csv")
     assert len(trace) == summaries[0]["steps"] and set(trace["beta"].unique()) <= {0.0, 1.0}
     assert pd.read_csv(tmp_path / "study" / "episodes.csv")["method"].tolist() == ["ida"]
+
+
+def test_play_with_reddys_copilot_hands_it_exactly_the_frames_outside_the_tolerance(tmp_path):
+    import pandas as pd
+
+    from dcsc_torchrl.copilot import CopilotQNetwork, TrainedCopilot
+
+    torch.manual_seed(0)
+    copilot = TrainedCopilot(CopilotQNetwork([8]).requires_grad_(False), 0.3, ("surrogate_noisy",))
+    summaries, _, policy, learner = play_session(machine=None, out=tmp_path / "study", copilot=copilot,
+                                                 exploration_type=ExplorationType.MODE)
+    assert learner is None and type(policy["arbiter"]).__name__ == "ToleranceArbiter"
+    trace = pd.read_csv(tmp_path / "study" / "trace.csv")
+    assert len(trace) == summaries[0]["steps"] and set(trace["beta"].unique()) <= {0.0, 1.0}
+    assert pd.read_csv(tmp_path / "study" / "episodes.csv")["method"].tolist() == ["reddy"]
+
+
+def test_play_without_a_copilot_says_how_to_get_one(tmp_path, capsys):
+    assert dcsc(["play", "lunarlander", "--assist", "reddy", "--copilot", str(tmp_path / "none.pt")]) == 2
+    assert "dcsc copilot" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("exploration_type", [ExplorationType.MODE, ExplorationType.RANDOM])

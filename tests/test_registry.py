@@ -62,8 +62,8 @@ def test_the_registry_module_loads_no_torch():
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout == "False\n"
 
 
-@pytest.mark.parametrize("method", [m for m in METHOD_NAMES if METHODS[m].kind != "frozen"])
-def test_every_method_but_the_ablation_has_an_arbiter_of_the_task_dims(method):
+@pytest.mark.parametrize("method", [m for m in METHOD_NAMES if METHODS[m].kind != "frozen" and m != "reddy"])
+def test_every_method_but_the_ablation_and_reddy_has_an_arbiter_of_the_task_dims(method):
     arbiter = make_arbiter(method, 3, theta_init=0.5, hula_threshold=0.1, constant_beta=0.2,
                            rule=lambda obs: obs[..., 0] > 0, q_value=ConcatInputs(torch.nn.Linear(12, 1)),
                            expert_q=ConcatInputs(torch.nn.Linear(12, 1)), discrete=False)
@@ -92,10 +92,15 @@ def _confidences(n: int):
 
 
 def test_the_rule_method_runs_for_a_task_with_an_authority_rule_only():
-    assert task_methods(get_task("lunarlander")) == DEFAULT_METHODS == tuple(m for m in METHOD_NAMES if m != "ida_expert")
+    assert tuple(m for m in METHOD_NAMES if m not in ("ida_expert", "reddy")) == DEFAULT_METHODS
+    assert task_methods(get_task("lunarlander")) == DEFAULT_METHODS
     assert task_methods(get_task("uav")) == tuple(m for m in DEFAULT_METHODS if m != "rule")
+    assert "reddy" in task_methods(get_task("lunarlander"), METHOD_NAMES)
+    assert "reddy" not in task_methods(get_task("uav"), METHOD_NAMES)  # keys only
     with pytest.raises(ValueError, match="the rule arbiter needs a rule"):
         make_arbiter("rule", 1)
+    with pytest.raises(ValueError, match="method reddy brings its own machine"):
+        make_arbiter("reddy", 1)
 
 
 def test_the_lunar_rule_hands_the_machine_the_controls_over_the_middle_of_the_pad():
