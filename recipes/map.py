@@ -20,12 +20,16 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from functools import partial
+from multiprocessing import get_context
 from pathlib import Path
 
 import pandas as pd
 import torch
 from omegaconf import DictConfig
 
+from dcsc_torchrl.checkpoint import checkpoint_path
 from dcsc_torchrl.config import ConfigError, distinct, load_config, writable_folder
 from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.methods import METHOD_NAMES, METHODS
@@ -59,29 +63,47 @@ def map_config(overrides: Sequence[str] = (), *, quick: bool = False) -> DictCon
     return cfg
 
 
-def ready_assistants(cfg: DictConfig, *, quick: bool) -> list[str]:
-    """The protocol settings of the assistants the map's methods read, made when missing:
-    ``ida.expert`` (machine ``expert``'s seed-0 checkpoint) and ``reddy.copilots``."""
-    from dcsc_torchrl.checkpoint import checkpoint_path
-    from dcsc_torchrl.recipes.copilot_lunarlander import copilot_config, train
+def _pretrain_expert(task: str, overrides: list[str], operators: list[str], quick: bool) -> None:
     from dcsc_torchrl.recipes.machines import pretrained_machine
 
-    settings = []
+    cfg = checked_grid(task, quick=quick, overrides=overrides, operators=operators, option="operators").cfg
+    pretrained_machine(get_task(task), cfg, 0, quick=quick)
+
+
+def _train_copilot(pool: list[str], folder: Path, quick: bool) -> None:
+    from dcsc_torchrl.recipes.copilot_lunarlander import copilot_config, train
+
+    print(f"map: training copilot {folder.name} ({', '.join(pool)})", flush=True)
+    train(copilot_config([f"pool=[{','.join(pool)}]"], quick=quick, out=folder),
+          resume=(folder / "checkpoint.pt").is_file())
+
+
+def ready_assistants(cfg: DictConfig, *, quick: bool, workers: int = 1) -> list[str]:
+    """The protocol settings of the assistants the map's methods read, made when missing
+    (``workers`` at a time, each in its own process when more than one): ``ida.expert``
+    (machine ``expert``'s seed-0 checkpoint, pretrained) and ``reddy.copilots`` (trained)."""
+    jobs, settings = [], []
     if "ida_expert" in cfg.methods:
-        expert_cfg = checked_grid(cfg.task, quick=quick, overrides=machine_overrides(cfg, cfg.expert),
-                                  operators=cfg.operators, option="operators").cfg
-        pretrained_machine(get_task(cfg.task), expert_cfg, 0, quick=quick)
-        settings.append(f"ida.expert={checkpoint_path(expert_cfg.pretrain.out_dir, 0)}")
+        overrides = machine_overrides(cfg, cfg.expert)
+        path = checkpoint_path(Path(cfg.pretrain_dir).resolve() / cfg.expert, 0)
+        if not path.is_file():
+            jobs.append(partial(_pretrain_expert, cfg.task, overrides, list(cfg.operators), quick))
+        settings.append(f"ida.expert={path}")
     if "reddy" in cfg.methods:
         paths = []
         for name, pool in cfg.copilots.items():
             folder = (Path(cfg.pretrain_dir) / f"copilot-{name}").resolve()
             if not (folder / "copilot.pt").is_file():
-                print(f"map: training copilot {name} ({', '.join(pool)})", flush=True)
-                train(copilot_config([f"pool=[{','.join(pool)}]"], quick=quick, out=folder),
-                      resume=(folder / "checkpoint.pt").is_file())
+                jobs.append(partial(_train_copilot, list(pool), folder, quick))
             paths.append(str(folder / "copilot.pt"))
         settings.append(f"reddy.copilots=[{','.join(paths)}]")
+    if workers == 1 or len(jobs) < 2:
+        for job in jobs:
+            job()
+    else:
+        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=get_context("spawn")) as pool:
+            for future in [pool.submit(job) for job in jobs]:
+                future.result()
     return settings
 
 
@@ -139,7 +161,7 @@ def run_map(out: Path | None = None, *, quick: bool = False, overrides: Sequence
     out = writable_folder((out or Path("results/quick/map" if quick else "results/map")).resolve())
     cfg = map_config(overrides, quick=quick)
     machine_grids(cfg, quick=quick)  # every machine's config checked before any assistant is made
-    cfg.protocol = [*cfg.protocol, *ready_assistants(cfg, quick=quick)]
+    cfg.protocol = [*cfg.protocol, *ready_assistants(cfg, quick=quick, workers=workers)]
     grids = machine_grids(cfg, quick=quick)
     run = executor(workers)
     torch.set_num_threads(next(iter(grids.values())).cfg.threads)
