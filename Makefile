@@ -26,8 +26,9 @@ reproduce: install
 map: install
 	$(VENV)/bin/dcsc map $(if $(QUICK),--quick,)
 
-# The LunarLander protocol with a converged machine (PPO on the paper's networks until the greedy
-# machine lands >= 90% on the standard pad: docs/pretraining.md), pretrained when missing.
+# The LunarLander protocol with the goal-blind converged machine (PPO on the paper's networks until
+# the greedy machine lands >= 90% on the standard pad: docs/pretraining.md), pretrained when missing;
+# the map (make map) has the pad-seeing converged machine too.
 CONVERGED_LUNAR := loss.algorithm=ppo,loss.gamma=0.999,loss.gae_lambda=0.98,loss.normalize_advantage=true,\
 	env.num_envs=16,collector.rollout_length=1024,ppo.minibatch_size=64,optim.lr=3.0e-4,\
 	qcritic.updates_per_batch=1024,train.episodes=4000,train.checkpoint_every=200,train.stop_success=0.9,\
@@ -35,7 +36,7 @@ CONVERGED_LUNAR := loss.algorithm=ppo,loss.gamma=0.999,loss.gae_lambda=0.98,loss
 
 converged: install
 	$(VENV)/bin/dcsc sweep --out results/converged "tasks=[lunarlander]" \
-		lunarlander.pretrain.out_dir=runs/pretrain_lunarlander_converged \
+		lunarlander.pretrain.out_dir=runs/pretrain_lunarlander_converged lunarlander.pretrain.observes=blind \
 		"lunarlander.pretrain.recipe=[$(CONVERGED_LUNAR)]"
 
 bench: install
