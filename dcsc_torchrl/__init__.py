@@ -9,7 +9,8 @@ human-machine collaboration", as composable TorchRL pieces:
 - :mod:`dcsc_torchrl.machine` — the MC-dropout machine policy;
 - :mod:`dcsc_torchrl.arbiters` — DC-SC's learnable arbiter (Eqs. 15, 18) and the baselines;
 - :mod:`dcsc_torchrl.policy` — the shared policy (Eq. 14);
-- :mod:`dcsc_torchrl.losses` — the critic's TD loss and the theta update (Eq. 19).
+- :mod:`dcsc_torchrl.losses` — the critic's TD loss and the theta update (Eq. 19);
+- :mod:`dcsc_torchrl.copilot` — a field's assistant beside it: Reddy et al.'s copilot.
 
 The names below are imported from their modules on first use, so importing the package
 (``import dcsc_torchrl.config``, the ``dcsc`` command's help) does not load torch.
@@ -24,6 +25,8 @@ _HOMES = {
     "arbiters": ["Arbiter", "CentredConfidenceArbiter", "ConfidenceArbiter", "ConstantArbiter",
                  "FrozenConfidenceArbiter", "HULAArbiter", "HumanOnlyArbiter", "MachineOnlyArbiter", "RuleArbiter",
                  "centred_fusion_weight", "confidence_ratio", "fusion_weight", "load_arbiter", "save_arbiter"],
+    "copilot": ["CopilotPolicy", "CopilotQNetwork", "ToleranceArbiter", "TrainedCopilot", "keeps_pilot",
+                "load_copilot", "save_copilot"],
     "confidence": ["human_confidence", "knowledge_update", "machine_confidence", "mc_dropout_uncertainty"],
     "losses": ["QCriticLoss", "ThetaLoss"],
     "machine": ["MCDropoutPolicy", "calibrated_uncertainty_scale"],
