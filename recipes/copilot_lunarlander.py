@@ -25,6 +25,7 @@ import time
 from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 import torch
@@ -93,9 +94,10 @@ def pilot_envs(pilot: str, num_envs: int, *, seed: int) -> TransformedEnv:
                           transforms=[HumanOperatorTransform(TASK.make_operator(pilot), seed=seed)])
 
 
-def development_success(copilot: CopilotQNetwork, alpha: float, pilot: str, cfg: DictConfig) -> float:
-    """The success of the copilot at tolerance ``alpha`` next to ``pilot`` on the development scenarios."""
-    settings = cell_settings(task_config(TASK))
+def development_success(copilot: CopilotQNetwork, alpha: float, pilot: str, cfg: DictConfig,
+                        settings: dict[str, Any]) -> float:
+    """The success of the copilot at tolerance ``alpha`` next to ``pilot`` on the development scenarios
+    (``settings``: the protocol's cell settings, whose confidence and rollout the runs use)."""
     seeds = list(range(cfg.alpha.first_seed, cfg.alpha.first_seed + cfg.alpha.scenarios))
     transforms = [FirstEpisodeOnly(), HumanOperatorTransform(TASK.make_operator(pilot), seed=cfg.alpha.first_seed),
                   HumanConfidenceTransform(**settings["human"])]
@@ -108,8 +110,8 @@ def development_success(copilot: CopilotQNetwork, alpha: float, pilot: str, cfg:
 
 
 def train(cfg: DictConfig, *, resume: bool = False) -> Path:
-    """Trains the copilot of ``cfg`` into ``cfg.logger.out_dir``, chooses its alpha; returns ``copilot.pt``."""
-    check(cfg)
+    """Trains the copilot of ``cfg`` (:func:`copilot_config`'s, checked) into ``cfg.logger.out_dir``,
+    chooses its alpha; returns ``copilot.pt``."""
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     start = time.perf_counter()
@@ -159,7 +161,9 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     train_seconds = time.perf_counter() - start
 
     network.eval()
-    rows = [{"alpha": float(alpha), "pilot": pilot, "success": development_success(network, float(alpha), pilot, cfg)}
+    settings = cell_settings(task_config(TASK))
+    rows = [{"alpha": float(alpha), "pilot": pilot,
+             "success": development_success(network, float(alpha), pilot, cfg, settings)}
             for alpha in cfg.alpha.grid for pilot in cfg.pool]
     table = pd.DataFrame(rows)
     table.to_csv(Path(cfg.logger.out_dir) / "alpha.csv", index=False)

@@ -97,28 +97,28 @@ def _overrides(parser: argparse.ArgumentParser, example: str) -> None:
                         help=f"config overrides, anywhere on the line, hydra style: {example}")
 
 
-def add_recipe_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """The options of a pretraining recipe: ``[--quick] [--resume] [--out DIR] [key=value ...]``."""
+def _add_training_options(parser: argparse.ArgumentParser, *, out: str, example: str) -> argparse.ArgumentParser:
+    """A training run's options: ``[--quick] [--resume] [--out DIR] [key=value ...]`` (``out``: --out's help)."""
     parser.add_argument("--quick", action="store_true", help="the tiny setting of the yaml's quick block (tests)")
     parser.add_argument("--resume", action="store_true",
                         help="continue from the run's last checkpoint; refused if the config differs")
-    parser.add_argument("--out", type=Path, default=None,
-                        help="run directory (default: <pretrain.out_dir>/seed<seed>/ of the task's protocol "
-                             "yaml, where dcsc run reads this seed's machine)")
-    _overrides(parser, "optim.lr=1e-3 train.episodes=100")
+    parser.add_argument("--out", type=Path, default=None, help=out)
+    _overrides(parser, example)
     return parser
+
+
+def add_recipe_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of a pretraining recipe: ``[--quick] [--resume] [--out DIR] [key=value ...]``."""
+    return _add_training_options(
+        parser, out="run directory (default: <pretrain.out_dir>/seed<seed>/ of the task's protocol yaml, where "
+                    "dcsc run reads this seed's machine)", example="optim.lr=1e-3 train.episodes=100")
 
 
 def add_copilot_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dcsc copilot``: ``[--quick] [--resume] [--out DIR] [key=value ...]``."""
-    parser.add_argument("--quick", action="store_true", help="the tiny setting of the yaml's quick block (tests)")
-    parser.add_argument("--resume", action="store_true",
-                        help="continue the training from its last checkpoint; refused if the config differs")
-    parser.add_argument("--out", type=Path, default=None,
-                        help="run directory (default: logger.out_dir of recipes/copilot_lunarlander.yaml); "
-                             "copilot.pt there is what reddy.copilots names")
-    _overrides(parser, "pool=[noisy,laggy,distracted] train.frames=50000")
-    return parser
+    return _add_training_options(
+        parser, out="run directory (default: logger.out_dir of recipes/copilot_lunarlander.yaml); copilot.pt "
+                    "there is what reddy.copilots names", example="pool=[noisy,laggy,distracted] train.frames=50000")
 
 
 def add_run_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
