@@ -1,7 +1,7 @@
 """The ``dcsc`` command: one entry point for every job of the project (docs/cli.md).
 
     dcsc pretrain {lunarlander,uav} [--quick] [--resume] [--out DIR] [key=value ...]
-    dcsc copilot [--quick] [--resume] [--out DIR] [key=value ...]
+    dcsc copilot TASK [--quick] [--resume] [--out DIR] [key=value ...]
     dcsc run {lunarlander,uav} [--quick] [--out DIR] [--methods M ...] [--operators P ...] [--fresh] [key=value ...]
     dcsc sweep [--quick] [--out DIR] [--address ADDR] [--fresh] [key=value ...]
     dcsc reproduce [--quick] [--out DIR] [--fresh] [key=value ...]
@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from dcsc_torchrl.recipes.configs import CONFIGS, COPILOT_CONFIG, MAP_CONFIG, SWEEP_CONFIG
+from dcsc_torchrl.recipes.configs import CONFIGS, MAP_CONFIG, SWEEP_CONFIG
 from dcsc_torchrl.recipes.options import (
     RUN_EPILOG,
     Parser,
@@ -44,7 +44,7 @@ from dcsc_torchrl.recipes.options import (
     add_sweep_options,
     description,
 )
-from dcsc_torchrl.tasks import TASK_NAMES, get_task
+from dcsc_torchrl.tasks import COPILOT_TASK_NAMES, TASK_NAMES, get_task
 
 
 # -- the sub-commands' work: every heavy import is inside ------------------------------
@@ -69,10 +69,11 @@ def _pretrain(args: argparse.Namespace) -> Path:
 def _copilot(args: argparse.Namespace) -> Path:
     from dcsc_torchrl.config import load_config
 
-    load_config(COPILOT_CONFIG, args.overrides, quick=args.quick, quiet=True)  # before torch loads
-    from dcsc_torchrl.recipes.copilot_lunarlander import copilot_config, train
+    load_config(CONFIGS[args.task].copilot, args.overrides, quick=args.quick, quiet=True)  # before torch loads
+    from dcsc_torchrl.recipes.copilot import copilot_config, train
 
-    path = train(copilot_config(args.overrides, quick=args.quick, out=args.out), resume=args.resume)
+    path = train(copilot_config(get_task(args.task), args.overrides, quick=args.quick, out=args.out),
+                 resume=args.resume)
     _say(f"copilot in {path}")
     return path
 
@@ -170,7 +171,7 @@ def _ship(args: argparse.Namespace) -> Path:
 
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], Any], Callable[[argparse.Namespace], Any]]] = {
     "pretrain": ("pretrain a machine policy (A2C for lunarlander, DDPG for uav)", add_recipe_options, _pretrain),
-    "copilot": ("train Reddy et al.'s copilot for lunarlander: DQN with surrogate pilots in the loop",
+    "copilot": ("train Reddy et al.'s copilot of a task: DQN with surrogate pilots in the loop",
                 add_copilot_options, _copilot),
     "run": ("the shared-control protocol of one task, every cell, resumable", add_run_options, _run),
     "sweep": ("the protocol's grid of cells as Ray tasks, here or on a cluster", add_sweep_options, _sweep),
@@ -198,6 +199,8 @@ def build_parser() -> Parser:
                                   epilog=RUN_EPILOG if name == "run" else None)
         if name in ("pretrain", "run", "ship", "study"):
             sub.add_argument("task", choices=TASK_NAMES, help="the task")
+        elif name == "copilot":
+            sub.add_argument("task", choices=COPILOT_TASK_NAMES, help="the task")
         elif name == "play":
             sub.add_argument("task", choices=["lunarlander"], help="the task (LunarLander only)")
         add_options(sub)

@@ -170,7 +170,7 @@ list); keys a config lacks are skipped, ``null`` passes. Every number must be fi
 NULLABLE: dict[str, Any] = {
     "arbiter.hula_threshold": 0.5,
     "ida.expert": "runs/pretrain/seed0/checkpoint.pt",
-    "reddy.copilots": ["runs/copilot_lunarlander/copilot.pt"],
+    "reddy.copilots": ["runs/copilot_uav/copilot.pt"],
     "protocol.max_steps": 1,
     "operators": ["expert"],
     "pretrain_seeds": [0],

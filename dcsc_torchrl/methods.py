@@ -16,8 +16,8 @@ ida_expert    fixed     the same rule on an expert's Q given to the cell (IDA as
                         when named, with the expert given
 reddy         fixed     Reddy et al.'s copilot (:mod:`dcsc_torchrl.copilot`): a DQN
                         trained with surrogate pilots is the machine, its tolerance
-                        rule the arbiter; discrete tasks only; run only when named,
-                        with a trained copilot given
+                        rule the arbiter (for a task with a copilot network); run
+                        only when named, with a trained copilot given
 dcsc          learned   :class:`ConfidenceArbiter` (Eq. 15 as printed), theta learned online
 dcsc_centred  learned   :class:`CentredConfidenceArbiter`, theta learned online
 dcsc_frozen   frozen    a learned arbiter fed its confidences' collaboration means
@@ -102,7 +102,8 @@ ARBITER_FORMS = tuple(m.form for m in METHODS.values() if m.kind == "learned")
 
 def task_methods(task: Task, methods: Sequence[str] = DEFAULT_METHODS) -> tuple[str, ...]:
     """``methods`` that ``task`` defines: all of them, less ``rule`` for a task without an
-    :attr:`~dcsc_torchrl.tasks.Task.authority_rule` and ``reddy`` for a continuous one.
+    :attr:`~dcsc_torchrl.tasks.Task.authority_rule` and ``reddy`` for one without a
+    :attr:`~dcsc_torchrl.tasks.Task.make_copilot_network`.
 
     Examples:
         >>> from dcsc_torchrl.tasks import get_task
@@ -110,14 +111,15 @@ def task_methods(task: Task, methods: Sequence[str] = DEFAULT_METHODS) -> tuple[
         (True, False)
     """
     return tuple(m for m in methods if (m != "rule" or task.authority_rule is not None)
-                 and (m != "reddy" or task.discrete))
+                 and (m != "reddy" or task.make_copilot_network is not None))
 
 
 def check_task_methods(task: Task, methods: Sequence[str]) -> None:
-    """Refuses ``methods`` that ``task`` does not define (``rule`` without an authority rule)."""
+    """Refuses ``methods`` that ``task`` does not define (``rule`` without an authority rule,
+    ``reddy`` without a copilot network)."""
     undefined = [m for m in methods if m not in task_methods(task, METHOD_NAMES)]
     if undefined:
-        why = "no authority rule" if "rule" in undefined else "continuous actions (Reddy's copilot is built for keys)"
+        why = "no authority rule" if "rule" in undefined else "no copilot network (Task.make_copilot_network)"
         raise ValueError(f"task {task.name} does not define method(s) {', '.join(undefined)}: it has {why}")
 
 

@@ -13,7 +13,7 @@ This module imports neither torch nor gymnasium.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -23,8 +23,9 @@ if TYPE_CHECKING:
     import pandas as pd
     import torch
     from torch import nn
-    from torchrl.envs import TransformedEnv
+    from torchrl.envs import Transform, TransformedEnv
 
+    from dcsc_torchrl.copilot import CopilotQNetwork
     from dcsc_torchrl.transforms import HumanOperator
 
 
@@ -63,6 +64,11 @@ class Task:
         make_pretraining_envs: ``num_envs -> env``, the batched env the machine is pretrained on.
         make_person: ``t_d -> HumanOperator``, a person at the controls in a window (``dcsc study``;
             ``t_d`` of Eq. 6: no change of the controls for longer is a slow decision).
+        make_copilot_network: ``hidden -> CopilotQNetwork``, Reddy et al.'s copilot Q network on
+            what the task lets it see and its finite action set (:mod:`dcsc_torchrl.copilot`);
+            ``None``: the task has no copilot, and no ``reddy`` method.
+        make_copilot_envs: ``(num_envs, transforms) -> env``, fresh scenarios drawn as the
+            evaluation draws them (never a validation seed), the copilot's training envs.
     """
 
     name: str
@@ -85,6 +91,8 @@ class Task:
     action_labels: tuple[str, ...] = ()
     plot_trajectories: Callable[[pd.DataFrame, int, Path, str, Callable[[str], str]], Path] | None = field(default=None, repr=False)
     authority_rule: Callable[[torch.Tensor], torch.Tensor] | None = field(default=None, repr=False)
+    make_copilot_network: Callable[[Sequence[int]], CopilotQNetwork] | None = field(default=None, repr=False)
+    make_copilot_envs: Callable[[int, Sequence[Transform]], TransformedEnv] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if not self.action_labels:

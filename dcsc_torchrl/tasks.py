@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from torch import nn
     from torchrl.envs import Transform, TransformedEnv
 
+    from dcsc_torchrl.copilot import CopilotQNetwork
     from dcsc_torchrl.transforms import HumanOperator
 
 
@@ -134,6 +135,42 @@ def _over_the_pad(observation: torch.Tensor) -> torch.Tensor:
     return (observation[..., 0] - observation[..., 8]).abs() < PAD_HALF_WIDTH / 2
 
 
+def _lunar_copilot_network(hidden: Sequence[int]) -> CopilotQNetwork:
+    """Reddy et al.'s LunarLander copilot: the 4 keys, the pad's x masked (deepassist's ``obs[8]``)."""
+    import torch
+
+    from dcsc_torchrl.copilot import CopilotQNetwork
+    from dcsc_torchrl.networks import LUNAR_MACHINE_VIEWS, LUNAR_OBS_DIMS
+
+    return CopilotQNetwork(hidden, torch.eye(4), in_dims=LUNAR_OBS_DIMS, obs_dims=LUNAR_MACHINE_VIEWS["blind"])
+
+
+def _uav_copilot_network(hidden: Sequence[int]) -> CopilotQNetwork:
+    """The UAV copilot: the simulated operator's 27 ``(rho0, sigma0, tau)`` grid points (a person's
+    keys are 9 of them), the whole 9-value observation the DDPG machine reads (the paper's machine
+    knows the goal: the pilot's intent here is the way round the obstacles, not where to go)."""
+    import torch
+
+    from dcsc_torchrl.copilot import CopilotQNetwork
+    from dcsc_torchrl.humans.uav_operator import DEFAULT_GRID
+
+    return CopilotQNetwork(hidden, torch.tensor(DEFAULT_GRID), in_dims=9)
+
+
+def _lunar_copilot_envs(num_envs: int, transforms: Sequence[Transform]) -> TransformedEnv:
+    """TargetLunarLanders with a random pad, as the cells draw them."""
+    from dcsc_torchrl.batched_envs import make_lunar_env
+
+    return make_lunar_env(num_envs, random_pad=True, transforms=list(transforms))
+
+
+def _uav_copilot_envs(num_envs: int, transforms: Sequence[Transform]) -> TransformedEnv:
+    """Fresh UAV scenarios (never a validation seed), as DDPG pretrains on them."""
+    from dcsc_torchrl.batched_envs import make_uav_env
+
+    return make_uav_env(num_envs, transforms=list(transforms))
+
+
 def _uav_trajectories(trace: pd.DataFrame, scenario_seed: int, path: Path, title: str,
                       label: Callable[[str], str]) -> Path:
     from dcsc_torchrl.report import plot_uav_trajectories
@@ -152,6 +189,7 @@ TASKS: dict[str, Task] = {
             make_envs=_lunar_envs, make_operator=_pilot, make_networks=_lunar_networks,
             make_pretraining_envs=_lunar_pretraining_envs, make_person=_lunar_person,
             authority_rule=_over_the_pad,
+            make_copilot_network=_lunar_copilot_network, make_copilot_envs=_lunar_copilot_envs,
         ),
         Task(
             name="uav", title="UAV path planning", machine_label="DDPG", discrete=False,
@@ -162,11 +200,14 @@ TASKS: dict[str, Task] = {
             make_envs=_uav_envs, make_operator=_uav_operator, make_networks=_uav_networks,
             make_pretraining_envs=_uav_pretraining_envs, make_person=_uav_person,
             plot_trajectories=_uav_trajectories,
+            make_copilot_network=_uav_copilot_network, make_copilot_envs=_uav_copilot_envs,
         ),
     )
 }
 """Every task, by name."""
 TASK_NAMES = tuple(TASKS)
+COPILOT_TASK_NAMES = tuple(name for name, task in TASKS.items() if task.make_copilot_network is not None)
+"""The tasks with Reddy et al.'s copilot (``dcsc copilot TASK``, method ``reddy``)."""
 
 
 def get_task(name: str) -> Task:

@@ -19,21 +19,22 @@ RECIPES_DIR = Path(__file__).parent
 """The folder of the recipes and their yamls."""
 SWEEP_CONFIG = RECIPES_DIR / "sweep.yaml"
 MAP_CONFIG = RECIPES_DIR / "map.yaml"
-COPILOT_CONFIG = RECIPES_DIR / "copilot_lunarlander.yaml"
-"""Reddy et al.'s copilot (``dcsc copilot``): LunarLander only."""
 
 
 @dataclass(frozen=True)
 class TaskConfigs:
-    """A task's yamls: its shared-control protocol (over ``shared_control.yaml``) and its pretraining."""
+    """A task's yamls: its shared-control protocol (over ``shared_control.yaml``), its pretraining
+    and Reddy et al.'s copilot (``dcsc copilot``, over ``copilot.yaml``)."""
 
     protocol: Path
     pretrain: Path
+    copilot: Path
 
 
 CONFIGS: dict[str, TaskConfigs] = {
     "lunarlander": TaskConfigs(RECIPES_DIR / "shared_control_lunarlander.yaml",
-                               RECIPES_DIR / "pretrain_a2c_lunarlander.yaml"),
-    "uav": TaskConfigs(RECIPES_DIR / "shared_control_uav.yaml", RECIPES_DIR / "pretrain_ddpg_uav.yaml"),
+                               RECIPES_DIR / "pretrain_a2c_lunarlander.yaml", RECIPES_DIR / "copilot_lunarlander.yaml"),
+    "uav": TaskConfigs(RECIPES_DIR / "shared_control_uav.yaml", RECIPES_DIR / "pretrain_ddpg_uav.yaml",
+                       RECIPES_DIR / "copilot_uav.yaml"),
 }
 """Every task's configs, by task name (the names of :data:`dcsc_torchrl.tasks.TASKS`)."""

@@ -122,7 +122,7 @@ def write_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: Path,
     task = get_task(cell.task)
     methods = task_methods(task, methods)
     expert = expert_q(task, cfg) if "ida_expert" in methods else None
-    copilot = copilot_for(cfg, cell.operator) if "reddy" in methods else None
+    copilot = copilot_for(task, cfg, cell.operator) if "reddy" in methods else None
     result = run_cell(task, task.make_operator(cell.operator), machine, critic, operator_name=cell.operator,
                       pretrain_seed=cell.pretrain_seed, methods=methods, trace=cell.trace, expert_q=expert,
                       copilot=copilot,
@@ -250,7 +250,7 @@ def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], exe
             expert_q(get_task(grid.task), grid.cfg)
         if "reddy" in grid_methods:
             for cell in grid.cells:
-                copilot_for(grid.cfg, cell.operator)
+                copilot_for(get_task(grid.task), grid.cfg, cell.operator)
     with contextlib.ExitStack() as locks:
         for grid in grids:
             locks.enter_context(folder_lock(out / grid.task))

@@ -107,8 +107,8 @@ def ready_machine(task: Task, cfg: DictConfig, checkpoint: Path | None = None) -
     return machine_from_checkpoint(load_machine_checkpoint(task, cfg, path), task)
 
 
-def copilot_for(cfg: DictConfig, operator: str) -> TrainedCopilot:
-    """Method ``reddy``'s copilot next to ``operator``: the first of ``reddy.copilots`` that was
+def copilot_for(task: Task, cfg: DictConfig, operator: str) -> TrainedCopilot:
+    """Method ``reddy``'s copilot of ``task`` next to ``operator``: the first of ``reddy.copilots`` that was
     not trained with it (Reddy's copilot never meets its training pilots in an evaluation).
 
     Raises:
@@ -117,18 +117,18 @@ def copilot_for(cfg: DictConfig, operator: str) -> TrainedCopilot:
     """
     paths = cfg.reddy.copilots
     if not paths:
-        raise ConfigError("method reddy needs reddy.copilots: trained copilots (dcsc copilot writes copilot.pt), "
-                          "e.g. reddy.copilots=[runs/copilot_lunarlander/copilot.pt]")
+        raise ConfigError(f"method reddy needs reddy.copilots: trained copilots (dcsc copilot {task.name} writes copilot.pt), "
+                          f"e.g. reddy.copilots=[runs/copilot_{task.name}/copilot.pt]")
     pools = []
     for path in paths:
         if not Path(path).is_file():
             raise ConfigError(f"reddy.copilots: no copilot at {path}")
-        copilot = load_copilot(path)
+        copilot = load_copilot(path, task)
         if operator not in copilot.operators:
             return copilot
         pools.append(f"{path}: {', '.join(copilot.operators)}")
     raise ConfigError(f"reddy.copilots: every copilot was trained with operator {operator!r} ({'; '.join(pools)}): "
-                      f"train one without it (dcsc copilot pool=[...])")
+                      f"train one without it (dcsc copilot {task.name} pool=[...])")
 
 
 def expert_q(task: Task, cfg: DictConfig) -> torch.nn.Module:

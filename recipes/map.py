@@ -70,11 +70,11 @@ def _pretrain_expert(task: str, overrides: list[str], operators: list[str], quic
     pretrained_machine(get_task(task), cfg, 0, quick=quick)
 
 
-def _train_copilot(pool: list[str], folder: Path, quick: bool) -> None:
-    from dcsc_torchrl.recipes.copilot_lunarlander import copilot_config, train
+def _train_copilot(task: str, pool: list[str], folder: Path, quick: bool) -> None:
+    from dcsc_torchrl.recipes.copilot import copilot_config, train
 
     print(f"map: training copilot {folder.name} ({', '.join(pool)})", flush=True)
-    train(copilot_config([f"pool=[{','.join(pool)}]"], quick=quick, out=folder),
+    train(copilot_config(get_task(task), [f"pool=[{','.join(pool)}]"], quick=quick, out=folder),
           resume=(folder / "checkpoint.pt").is_file())
 
 
@@ -94,7 +94,7 @@ def ready_assistants(cfg: DictConfig, *, quick: bool, workers: int = 1) -> list[
         for name, pool in cfg.copilots.items():
             folder = (Path(cfg.pretrain_dir) / f"copilot-{name}").resolve()
             if not (folder / "copilot.pt").is_file():
-                jobs.append(partial(_train_copilot, list(pool), folder, quick))
+                jobs.append(partial(_train_copilot, cfg.task, list(pool), folder, quick))
             paths.append(str(folder / "copilot.pt"))
         settings.append(f"reddy.copilots=[{','.join(paths)}]")
     if workers == 1 or len(jobs) < 2:

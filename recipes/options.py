@@ -115,9 +115,9 @@ def add_recipe_options(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
 
 
 def add_copilot_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """The options of ``dcsc copilot``: ``[--quick] [--resume] [--out DIR] [key=value ...]``."""
+    """The options of ``dcsc copilot`` after the task: ``[--quick] [--resume] [--out DIR] [key=value ...]``."""
     return _add_training_options(
-        parser, out="run directory (default: logger.out_dir of recipes/copilot_lunarlander.yaml); copilot.pt "
+        parser, out="run directory (default: logger.out_dir of recipes/copilot_<task>.yaml); copilot.pt "
                     "there is what reddy.copilots names", example="pool=[noisy,laggy,distracted] train.frames=50000")
 
 

@@ -80,8 +80,8 @@ def play_config() -> DictConfig:
 def load_play_copilot(path: Path) -> TrainedCopilot:
     """The copilot of ``--assist reddy``, or a FileNotFoundError that says how to get one."""
     if not Path(path).is_file():
-        raise FileNotFoundError(f"no copilot at {path}: train one with `dcsc copilot`, or pass --copilot PATH")
-    return load_copilot(path)
+        raise FileNotFoundError(f"no copilot at {path}: train one with `dcsc copilot lunarlander`, or pass --copilot PATH")
+    return load_copilot(path, TASK)
 
 
 def load_machine(path: Path) -> tuple[nn.Module, nn.Module]:

@@ -375,10 +375,12 @@ def test_play_with_ida_hands_over_whole_frames_by_the_machines_q_and_learns_noth
 def test_play_with_reddys_copilot_hands_it_exactly_the_frames_outside_the_tolerance(tmp_path):
     import pandas as pd
 
-    from dcsc_torchrl.copilot import CopilotQNetwork, TrainedCopilot
+    from dcsc_torchrl.copilot import TrainedCopilot
+    from dcsc_torchrl.tasks import get_task
 
     torch.manual_seed(0)
-    copilot = TrainedCopilot(CopilotQNetwork([8]).requires_grad_(False), 0.3, ("surrogate_noisy",))
+    network = get_task("lunarlander").make_copilot_network([8]).requires_grad_(False)
+    copilot = TrainedCopilot(network, 0.3, ("surrogate_noisy",))
     summaries, _, policy, learner = play_session(machine=None, out=tmp_path / "study", copilot=copilot,
                                                  exploration_type=ExplorationType.MODE)
     assert learner is None and type(policy["arbiter"]).__name__ == "ToleranceArbiter"
