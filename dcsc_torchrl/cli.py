@@ -2,6 +2,7 @@
 
     dcsc pretrain {lunarlander,uav} [--quick] [--resume] [--out DIR] [key=value ...]
     dcsc copilot TASK [--quick] [--resume] [--out DIR] [key=value ...]
+    dcsc arbiter lunarlander [--quick] [--out DIR] [key=value ...]
     dcsc run {lunarlander,uav} [--quick] [--out DIR] [--methods M ...] [--operators P ...] [--fresh] [key=value ...]
     dcsc sweep [--quick] [--out DIR] [--address ADDR] [--fresh] [key=value ...]
     dcsc reproduce [--quick] [--out DIR] [--fresh] [key=value ...]
@@ -31,6 +32,7 @@ from dcsc_torchrl.recipes.configs import CONFIGS, MAP_CONFIG, SWEEP_CONFIG
 from dcsc_torchrl.recipes.options import (
     RUN_EPILOG,
     Parser,
+    add_arbiter_options,
     add_common_options,
     add_copilot_options,
     add_map_options,
@@ -44,7 +46,7 @@ from dcsc_torchrl.recipes.options import (
     add_sweep_options,
     description,
 )
-from dcsc_torchrl.tasks import COPILOT_TASK_NAMES, TASK_NAMES, get_task
+from dcsc_torchrl.tasks import COPILOT_TASK_NAMES, TASK_NAMES, TASKS, get_task
 
 
 # -- the sub-commands' work: every heavy import is inside ------------------------------
@@ -75,6 +77,17 @@ def _copilot(args: argparse.Namespace) -> Path:
     path = train(copilot_config(get_task(args.task), args.overrides, quick=args.quick, out=args.out),
                  resume=args.resume)
     _say(f"copilot in {path}")
+    return path
+
+
+def _arbiter(args: argparse.Namespace) -> Path:
+    from dcsc_torchrl.config import load_config
+
+    load_config(CONFIGS[args.task].protocol, args.overrides, quick=args.quick, quiet=True)  # before torch loads
+    from dcsc_torchrl.recipes.arbiter import main
+
+    path = main(get_task(args.task), args.overrides, quick=args.quick, out=args.out)
+    _say(f"arbiter in {path}")
     return path
 
 
@@ -173,6 +186,8 @@ COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], Any], Callabl
     "pretrain": ("pretrain a machine policy (A2C for lunarlander, DDPG for uav)", add_recipe_options, _pretrain),
     "copilot": ("train Reddy et al.'s copilot of a task: DQN with surrogate pilots in the loop",
                 add_copilot_options, _copilot),
+    "arbiter": ("pretrain the state-dependent arbiter in simulation, next to a cell's machine", add_arbiter_options,
+                _arbiter),
     "run": ("the shared-control protocol of one task, every cell, resumable", add_run_options, _run),
     "sweep": ("the protocol's grid of cells as Ray tasks, here or on a cluster", add_sweep_options, _sweep),
     "reproduce": ("pretrain, run both experiments, write the report", add_reproduce_options, _reproduce),
@@ -201,6 +216,8 @@ def build_parser() -> Parser:
             sub.add_argument("task", choices=TASK_NAMES, help="the task")
         elif name == "copilot":
             sub.add_argument("task", choices=COPILOT_TASK_NAMES, help="the task")
+        elif name == "arbiter":
+            sub.add_argument("task", choices=[n for n in TASK_NAMES if TASKS[n].discrete], help="the task")
         elif name == "play":
             sub.add_argument("task", choices=["lunarlander"], help="the task (LunarLander only)")
         add_options(sub)

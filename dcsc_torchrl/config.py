@@ -159,6 +159,19 @@ LIMITS: dict[str, Range] = {
     "alpha.grid": UNIT,
     "alpha.first_seed": NON_NEGATIVE,
     "alpha.scenarios": COUNT,
+    # dcsc arbiter (the state-dependent arbiter's pretraining)
+    "state.rounds": COUNT,
+    "state.scenarios": COUNT,
+    "state.calibration_runs": COUNT,
+    "state.first_seed": NON_NEGATIVE,
+    "state.hidden": COUNT,
+    "state.value_hidden": COUNT,
+    "state.spread": POSITIVE,
+    "state.lr": POSITIVE,
+    "state.gae_lambda": UNIT,
+    "state.entropy_coeff": NON_NEGATIVE,
+    "state.critic_coeff": POSITIVE,
+    "state.max_grad_norm": POSITIVE,
     # dcsc sweep
     "pretrain_seeds": NON_NEGATIVE,
     "ray.workers": COUNT,
@@ -171,6 +184,7 @@ NULLABLE: dict[str, Any] = {
     "arbiter.hula_threshold": 0.5,
     "ida.expert": "runs/pretrain/seed0/checkpoint.pt",
     "reddy.copilots": ["runs/copilot_uav/copilot.pt"],
+    "state.arbiters": ["runs/arbiter_lunarlander/arbiter.pt"],
     "protocol.max_steps": 1,
     "operators": ["expert"],
     "pretrain_seeds": [0],
@@ -181,11 +195,11 @@ NULLABLE: dict[str, Any] = {
 example value: an override of it is checked as one of a key with that value in the yaml would be."""
 
 NON_EMPTY = frozenset({"pretrain.seeds", "operator.presets", "tasks", "operators", "pretrain_seeds", "methods", "pool",
-                       "alpha.grid"})
+                       "alpha.grid", "state.pool"})
 """Lists that need an entry (``null`` passes where it is the default)."""
 
 DISTINCT = frozenset({"pretrain.seeds", "operator.presets", "arbiter.constant_betas", "warmup.blend_betas", "tasks",
-                      "operators", "pretrain_seeds", "methods", "pool", "alpha.grid"})
+                      "operators", "pretrain_seeds", "methods", "pool", "alpha.grid", "state.pool"})
 """Lists of things each run once: a repeated entry is dropped, with a warning (it would count twice)."""
 
 FIXED = frozenset({"task"})

@@ -2,29 +2,33 @@
 
 A :class:`Method` names an arbiter and says how the protocol runs it (``kind``):
 
-============  ========  ================================================================
-machine       fixed     :class:`MachineOnlyArbiter` (A2C / DDPG alone)
-operator      fixed     :class:`HumanOnlyArbiter` (the operator alone)
-hula          fixed     :class:`HULAArbiter` (threshold calibrated on the operator-alone runs)
-rule          fixed     :class:`RuleArbiter` on the task's hand-written switch
-                        (:attr:`Task.authority_rule`; skipped for a task without one)
-ida           fixed     :class:`InterventionArbiter` (IDA): the machine acts where the
-                        cell's critic (Algorithm 1's Q, after its warm-up) rates its
-                        action above the operator's
-ida_expert    fixed     the same rule on an expert's Q given to the cell (IDA as its
-                        paper runs it, e.g. a converged machine's critic); run only
-                        when named, with the expert given
-reddy         fixed     Reddy et al.'s copilot (:mod:`dcsc_torchrl.copilot`): a DQN
-                        trained with surrogate pilots is the machine, its tolerance
-                        rule the arbiter (for a task with a copilot network); run
-                        only when named, with a trained copilot given
-dcsc          learned   :class:`ConfidenceArbiter` (Eq. 15 as printed), theta learned online
-dcsc_centred  learned   :class:`CentredConfidenceArbiter`, theta learned online
-dcsc_frozen   frozen    a learned arbiter fed its confidences' collaboration means
-                        (:class:`FrozenConfidenceArbiter`): what the confidences add
-constant      sweep     :class:`ConstantArbiter`, once per beta of a sweep (its best beta
-                        is the report's oracle row ``best_constant``)
-============  ========  ================================================================
+============  ==========  ================================================================
+machine       fixed       :class:`MachineOnlyArbiter` (A2C / DDPG alone)
+operator      fixed       :class:`HumanOnlyArbiter` (the operator alone)
+hula          fixed       :class:`HULAArbiter` (threshold calibrated on the operator-alone runs)
+rule          fixed       :class:`RuleArbiter` on the task's hand-written switch
+                          (:attr:`Task.authority_rule`; skipped for a task without one)
+ida           fixed       :class:`InterventionArbiter` (IDA): the machine acts where the
+                          cell's critic (Algorithm 1's Q, after its warm-up) rates its
+                          action above the operator's
+ida_expert    fixed       the same rule on an expert's Q given to the cell (IDA as its
+                          paper runs it, e.g. a converged machine's critic); run only
+                          when named, with the expert given
+reddy         fixed       Reddy et al.'s copilot (:mod:`dcsc_torchrl.copilot`): a DQN
+                          trained with surrogate pilots is the machine, its tolerance
+                          rule the arbiter (for a task with a copilot network); run
+                          only when named, with a trained copilot given
+dcsc          learned     :class:`ConfidenceArbiter` (Eq. 15 as printed), theta learned online
+dcsc_centred  learned     :class:`CentredConfidenceArbiter`, theta learned online
+dcsc_frozen   frozen      a learned arbiter fed its confidences' collaboration means
+                          (:class:`FrozenConfidenceArbiter`): what the confidences add
+dcsc_state    pretrained  the state-dependent arbiter (:mod:`dcsc_torchrl.state_arbiter`):
+                          theta a function of the frame, pretrained in simulation against
+                          a pool of operators, fine-tuned online; discrete tasks; run only
+                          when named, with a pretrained arbiter given
+constant      sweep       :class:`ConstantArbiter`, once per beta of a sweep (its best beta
+                          is the report's oracle row ``best_constant``)
+============  ==========  ================================================================
 
 Examples:
     >>> [m.name for m in METHODS.values() if m.kind == "learned"]
@@ -60,12 +64,13 @@ class Method:
         name: the method's name in CSVs and on the command line.
         label: its name in tables and figures (``machine`` reads the task's ``machine_label``).
         kind: ``fixed`` (validated as it is), ``learned`` (collaborates, then validates,
-            learning online), ``frozen`` (the ablation of a learned arbiter) or ``sweep``
-            (once per constant beta).
+            learning online), ``pretrained`` (the same, from an arbiter pretrained outside
+            the cell), ``frozen`` (the ablation of a learned arbiter) or ``sweep`` (once per
+            constant beta).
         form: the arbiter form of a learned method (``paper`` or ``centred``).
-        default: whether a run with no method list runs it (``ida_expert`` and ``reddy`` need
-            an input the protocol does not make, an expert's Q or a trained copilot, so they
-            run only when named).
+        default: whether a run with no method list runs it (``ida_expert``, ``reddy`` and
+            ``dcsc_state`` need an input the protocol does not make, an expert's Q, a trained
+            copilot or a pretrained arbiter, so they run only when named).
     """
 
     name: str
@@ -88,13 +93,14 @@ METHODS: dict[str, Method] = {
         Method("dcsc", "DC-SC (Eq. 15)", "learned", form="paper"),
         Method("dcsc_centred", "DC-SC (centred)", "learned", form="centred"),
         Method("dcsc_frozen", "DC-SC, confidences frozen", "frozen"),
+        Method("dcsc_state", "DC-SC, state-dependent (pretrained)", "pretrained", default=False),
         Method("constant", "constant β", "sweep"),
     )
 }
 """Every method, in the order of the protocol and the report."""
 METHOD_NAMES = tuple(METHODS)
 DEFAULT_METHODS = tuple(name for name, method in METHODS.items() if method.default)
-"""The methods a run with no method list runs (every method but ``ida_expert`` and ``reddy``)."""
+"""The methods a run with no method list runs (every method but ``ida_expert``, ``reddy`` and ``dcsc_state``)."""
 BEST_CONSTANT = Method("best_constant", "best constant β (oracle)", "oracle")
 """The report's row for the sweep's best beta (picked on the scenarios it is scored on)."""
 ARBITER_FORMS = tuple(m.form for m in METHODS.values() if m.kind == "learned")
@@ -102,8 +108,8 @@ ARBITER_FORMS = tuple(m.form for m in METHODS.values() if m.kind == "learned")
 
 def task_methods(task: Task, methods: Sequence[str] = DEFAULT_METHODS) -> tuple[str, ...]:
     """``methods`` that ``task`` defines: all of them, less ``rule`` for a task without an
-    :attr:`~dcsc_torchrl.tasks.Task.authority_rule` and ``reddy`` for one without a
-    :attr:`~dcsc_torchrl.tasks.Task.make_copilot_network`.
+    :attr:`~dcsc_torchrl.tasks.Task.authority_rule`, ``reddy`` for one without a
+    :attr:`~dcsc_torchrl.tasks.Task.make_copilot_network` and ``dcsc_state`` for a continuous one.
 
     Examples:
         >>> from dcsc_torchrl.tasks import get_task
@@ -111,15 +117,18 @@ def task_methods(task: Task, methods: Sequence[str] = DEFAULT_METHODS) -> tuple[
         (True, False)
     """
     return tuple(m for m in methods if (m != "rule" or task.authority_rule is not None)
-                 and (m != "reddy" or task.make_copilot_network is not None))
+                 and (m != "reddy" or task.make_copilot_network is not None)
+                 and (m != "dcsc_state" or task.discrete))
 
 
 def check_task_methods(task: Task, methods: Sequence[str]) -> None:
     """Refuses ``methods`` that ``task`` does not define (``rule`` without an authority rule,
-    ``reddy`` without a copilot network)."""
+    ``reddy`` without a copilot network, ``dcsc_state`` on continuous actions)."""
     undefined = [m for m in methods if m not in task_methods(task, METHOD_NAMES)]
     if undefined:
-        why = "no authority rule" if "rule" in undefined else "no copilot network (Task.make_copilot_network)"
+        why = ("no authority rule" if "rule" in undefined
+               else "no copilot network (Task.make_copilot_network)" if "reddy" in undefined
+               else "continuous actions (the state-dependent arbiter learns by A2C on Eq. 14's mixture of keys)")
         raise ValueError(f"task {task.name} does not define method(s) {', '.join(undefined)}: it has {why}")
 
 
@@ -187,7 +196,9 @@ def make_arbiter(
         return arbiters.ConstantArbiter(constant_beta, action_dims)
     if method == "reddy":
         raise ValueError("method reddy brings its own machine: a TrainedCopilot's policy() builds its shared policy")
-    built_here = [name for name in METHOD_NAMES if name not in ("dcsc_frozen", "reddy")]
+    if method == "dcsc_state":
+        raise ValueError("method dcsc_state brings its own arbiter: a copy of a PretrainedArbiter's")
+    built_here = [name for name in METHOD_NAMES if name not in ("dcsc_frozen", "reddy", "dcsc_state")]
     raise ValueError(f"method must be one of {', '.join(built_here)}, got {method!r}")
 
 

@@ -11,6 +11,9 @@ One small class per action kind, as TorchRL has one loss per algorithm:
 :func:`make_online_learner` picks the class from the policy. Both soft-update their
 target critic with ``SoftUpdate`` and keep :attr:`OnlineLearner.history`, one row per
 update (theta, its gradient, both losses).
+
+:class:`PolicyGradientLearner` is the state-dependent arbiter's (:mod:`dcsc_torchrl.state_arbiter`):
+TorchRL's ``A2CLoss`` on the shared policy's own frames, a value critic of that policy beside it.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ValueOperator
-from torchrl.objectives import DDPGLoss, LossModule, SoftUpdate, ValueEstimators
+from torchrl.objectives import A2CLoss, DDPGLoss, LossModule, SoftUpdate, ValueEstimators
 
 from dcsc_torchrl.losses import AuthorityThetaLoss, ThetaLoss, call_with_params
 from dcsc_torchrl.policy import SharedPolicyModule
@@ -297,6 +300,76 @@ class AuthorityOnlineLearner(OnlineLearner):
             raise ValueError(f"the authority critic is fitted on recorded returns: warm-up target must be 'return', "
                              f"got {target!r}")
         return super().warm_up(frames, target=target, **kwargs)
+
+
+class PolicyGradientLearner:
+    """A state-dependent arbiter learned from the shared policy's own frames (A2C, the machine frozen).
+
+    Eq. 16 asks for ``Q^{pi_theta}``, the value of the *shared* policy; Algorithm 1's critic
+    is warmed up on the partners flying alone. Here the arbiter's parameters ``psi`` follow
+    the policy gradient of Eq. 14's mixture (:meth:`~dcsc_torchrl.policy.SharedPolicyModule.authority_actor`,
+    the machine's stored output read, not rerun) with GAE advantages from a value critic
+    ``V(s)`` of the shared policy, fitted on the same frames: TorchRL's ``A2CLoss`` with the
+    arbiter as the actor. With a scalar arbiter it is Eq. 19's ascent with the advantage
+    in place of ``Q``; with :class:`~dcsc_torchrl.state_arbiter.StateDependentArbiter` the
+    gradient reaches the network that makes theta depend on the frame.
+
+    One gradient step per collected batch ``[envs, time]`` (GAE needs the time dimension),
+    advantages standardised over the batch, the summed loss's gradient clipped.
+
+    Args:
+        policy: the discrete shared policy whose arbiter learns.
+        value_net: ``observation -> state_value``, the shared policy's value critic.
+        lr: Adam's step for the arbiter and the value critic.
+        gamma: discount factor.
+        gae_lambda: GAE's lambda.
+        entropy_coeff: weight of the mixture's entropy bonus.
+        critic_coeff: weight of the value critic's loss.
+        max_grad_norm: the gradient norm a step is clipped to.
+    """
+
+    def __init__(self, policy: SharedPolicyModule, value_net: torch.nn.Module, *, lr: float, gamma: float,
+                 gae_lambda: float, entropy_coeff: float, critic_coeff: float, max_grad_norm: float) -> None:
+        self.policy, self.critic = policy, value_net
+        self.loss = A2CLoss(policy.authority_actor(), ValueOperator(value_net, in_keys=["observation"]),
+                            entropy_coeff=entropy_coeff, critic_coeff=critic_coeff, loss_critic_type="l2")
+        self.loss.make_value_estimator(ValueEstimators.GAE, gamma=gamma, lmbda=gae_lambda)
+        self.optim = torch.optim.Adam(self.loss.parameters(), lr=lr, foreach=True)
+        self.max_grad_norm = float(max_grad_norm)
+        self.history: list[dict[str, Any]] = []
+
+    def __call__(self, batch: TensorDictBase) -> None:
+        if batch.ndim != 2:
+            raise ValueError(f"the policy gradient needs batches [envs, time] (GAE runs along time), got {batch.shape}")
+        batch = batch.copy()  # the advantages are this update's, not the run's frames
+        with torch.no_grad():
+            self.loss.value_estimator(batch)
+        advantage = batch.get("advantage")
+        batch.set("advantage", (advantage - advantage.mean()) / (advantage.std() + 1e-8))
+        terms = self.loss(batch)
+        total = terms["loss_objective"] + terms["loss_critic"] + terms.get("loss_entropy", torch.zeros(()))
+        self.optim.zero_grad()
+        total.backward()
+        torch.nn.utils.clip_grad_norm_(list(self.loss.parameters()), self.max_grad_norm)
+        self.optim.step()
+        self.history.append({
+            "update": len(self.history) + 1,
+            "theta": self.policy["arbiter"].theta.detach().tolist(),
+            "loss_objective": terms["loss_objective"].item(),
+            "loss_critic": terms["loss_critic"].item(),
+        })
+
+    def state_dict(self) -> dict[str, Any]:
+        """The arbiter, the value critic, the optimiser and the history (:meth:`load_state_dict` continues)."""
+        return {"arbiter": self.policy["arbiter"].state_dict(), "value": self.critic.state_dict(),
+                "optim": self.optim.state_dict(), "history": list(self.history)}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restores a :meth:`state_dict` (of a learner of the same shapes)."""
+        self.policy["arbiter"].load_state_dict(state["arbiter"])
+        self.critic.load_state_dict(state["value"])
+        self.optim.load_state_dict(state["optim"])
+        self.history = list(state["history"])
 
 
 def check_online_settings(*, theta_critic: str = "action", theta_optimizer: str = "sgd", critic_lr: float = 0.0,

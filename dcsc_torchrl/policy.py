@@ -9,6 +9,7 @@ import torch
 from tensordict.nn import (
     InteractionType,
     ProbabilisticTensorDictModule,
+    ProbabilisticTensorDictSequential,
     TensorDictModule,
     TensorDictSequential,
 )
@@ -253,3 +254,16 @@ class SharedPolicyModule(TensorDictSequential):
             )
         super().__init__(parts)
         self.discrete = isinstance(action_spec, OneHot)
+
+    def authority_actor(self) -> ProbabilisticTensorDictSequential:
+        """The discrete shared policy on the machine's stored output: arbiter, blend and mixture.
+
+        The machine is not rerun (its ``machine_probs`` and confidence are read from the
+        frame), so a policy-gradient loss (TorchRL's ``A2CLoss``) differentiates Eq. 14's
+        mixture with respect to the arbiter's parameters alone. The parts are this policy's
+        own modules: a step of the loss moves the arbiter the policy acts with.
+        """
+        if not self.discrete:
+            raise ValueError("authority_actor is the discrete mixture of Eq. 14; a continuous shared action "
+                             "is a deterministic blend (DDPGLoss differentiates it)")
+        return ProbabilisticTensorDictSequential(self["arbiter"], self["blend"], self["sample"])

@@ -44,6 +44,7 @@ from dcsc_torchrl.methods import (
 from dcsc_torchrl.networks import authority_critic
 from dcsc_torchrl.online import WARMUP_TARGETS, OnlineLearner, make_online_learner
 from dcsc_torchrl.policy import SharedPolicyModule, plays_operator_alone
+from dcsc_torchrl.state_arbiter import PretrainedArbiter
 from dcsc_torchrl.task import Task
 from dcsc_torchrl.transforms import (
     FirstEpisodeOnly,
@@ -265,6 +266,7 @@ class ProtocolCell:
         progress: called with a short line as each run starts.
         expert_q: the Q network method ``ida_expert`` reads.
         copilot: the trained copilot method ``reddy`` runs.
+        state_arbiter: the pretrained arbiter method ``dcsc_state`` starts from.
         machine_alone_operator: the operator in the loop of the machine-alone runs, whose
             actions nobody reads (default: ``operator``; a person cannot fly a batch).
     """
@@ -273,9 +275,10 @@ class ProtocolCell:
                  base: dict[str, Any], pretrain_seed: int, human: Mapping[str, Any], machine: MachineSettings,
                  arbiter: ArbiterSettings, online: Mapping[str, Any], protocol: ProtocolSettings,
                  progress: Callable[[str], None] | None = None, expert_q: torch.nn.Module | None = None,
-                 copilot: TrainedCopilot | None = None, machine_alone_operator: HumanOperator | None = None) -> None:
+                 copilot: TrainedCopilot | None = None, state_arbiter: PretrainedArbiter | None = None,
+                 machine_alone_operator: HumanOperator | None = None) -> None:
         self.task, self.operator, self.machine_net, self.expert_q = task, operator, machine_net, expert_q
-        self.copilot = copilot
+        self.copilot, self.state_arbiter = copilot, state_arbiter
         self.machine_alone_operator = operator if machine_alone_operator is None else machine_alone_operator
         self.base, self.pretrain_seed = base, pretrain_seed
         self.human, self.machine, self.arbiter, self.online, self.protocol = human, machine, arbiter, online, protocol
@@ -299,11 +302,15 @@ class ProtocolCell:
 
     def policy(self, method: str, arbiter: Arbiter | None = None, **kwargs: Any) -> SharedPolicyModule:
         """The shared policy of ``method`` (its arbiter from the cell's settings and calibration, or
-        ``arbiter``); ``reddy``'s is the copilot's own."""
+        ``arbiter``); ``reddy``'s is the copilot's own; ``dcsc_state``'s a copy of the pretrained arbiter."""
         if method == "reddy":
             if self.copilot is None:
                 raise ValueError("method reddy runs a trained copilot: this cell has none")
             return self.copilot.policy(self.action_spec)
+        if method == "dcsc_state" and arbiter is None:
+            if self.state_arbiter is None:
+                raise ValueError("method dcsc_state starts from a pretrained arbiter: this cell has none")
+            arbiter = copy.deepcopy(self.state_arbiter.arbiter)
         if arbiter is None:
             start = self.arbiter.start(method) if METHODS[method].kind == "learned" else {}
             arbiter = make_arbiter(method, self.task.action_dims, hula_threshold=self.hula_threshold,
@@ -382,8 +389,7 @@ class ProtocolCell:
         protocol, machine = self.protocol, self.machine
         if self.hula_threshold is None:
             self.hula_threshold = float(torch.quantile(alone.uncertainty.double(), 0.9))
-        if protocol.calibrate_machine:
-            self.uncertainty_scale = calibrated_uncertainty_scale(alone.uncertainty, machine.lam, machine.delta2)
+        self.calibrate_unit(alone)
         episodes: list[dict[str, Any]] = []
         warm_frames = alone.frames
         if len(scenarios.machine_alone):
@@ -407,23 +413,33 @@ class ProtocolCell:
         self.critic = warm.critic
         return episodes, calibration
 
+    def calibrate_unit(self, alone: EpisodeBatch) -> None:
+        """The unit of the machine's uncertainty from the operator-alone episodes ``alone``
+        (:func:`calibrated_uncertainty_scale`), when ``protocol.calibrate_machine``."""
+        if self.protocol.calibrate_machine:
+            self.uncertainty_scale = calibrated_uncertainty_scale(alone.uncertainty, self.machine.lam,
+                                                                  self.machine.delta2)
+
     def learner(self, policy: SharedPolicyModule) -> OnlineLearner:
         """Algorithm 1's online learner of ``policy`` with its own copy of the warmed-up :attr:`critic`."""
         return make_online_learner(policy, copy.deepcopy(self.critic), **self.online)
 
     def collaborate(self, seeds: Sequence[int], methods: Sequence[str],
                     ) -> tuple[list[dict[str, Any]], dict[str, OnlineLearner], dict[str, int]]:
-        """Phase 2: each learned arbiter with its own theta and critic, learning online; then
+        """Phase 2: each learned arbiter with its own theta and critic, learning online (a pretrained
+        one, ``dcsc_state``, from the pretrained arbiter and value critic); then
         ``dcsc_frozen`` (if validated) from the ``arbiter.form`` arbiter, its confidences frozen
         at their collaboration means. Returns the rows, the learners and each one's update count."""
         frozen_source = learned_method(self.arbiter.form)
-        needed = {m for m in methods if METHODS[m].kind == "learned"} | (
+        needed = {m for m in methods if METHODS[m].kind in ("learned", "pretrained")} | (
             {frozen_source} if "dcsc_frozen" in methods else set())
         episodes: list[dict[str, Any]] = []
         learners: dict[str, OnlineLearner] = {}
         means: dict[str, tuple[float, float]] = {}
         for method in sorted(needed, key=METHOD_NAMES.index):
-            learners[method] = self.learner(self.policy(method))
+            policy = self.policy(method)
+            learners[method] = (self.state_arbiter.learner(policy) if METHODS[method].kind == "pretrained"
+                                else self.learner(policy))
             result = self.play("collaboration", method, seeds, learners[method].policy, update=learners[method])
             episodes += self.rows("collaboration", method, seeds, result)
             means[method] = (result.frames["machine_confidence"].mean().item(),
@@ -484,6 +500,7 @@ def run_cell(
     progress: Callable[[str], None] | None = None,
     expert_q: torch.nn.Module | None = None,
     copilot: TrainedCopilot | None = None,
+    state_arbiter: PretrainedArbiter | None = None,
 ) -> CellResult:
     """The protocol for one (task, operator, pretrained machine): calibrate, collaborate, validate.
 
@@ -506,7 +523,9 @@ def run_cell(
        their collaboration means; ``ida`` acts on a frozen copy of the critic as its
        warm-up left it (Algorithm 1's Q, before any collaboration); ``ida_expert`` on a
        frozen copy of ``expert_q``; ``reddy`` is ``copilot``'s own shared policy (its Q
-       network the machine, its tolerance rule the arbiter).
+       network the machine, its tolerance rule the arbiter); ``dcsc_state`` starts
+       collaboration from a copy of ``state_arbiter`` and its value critic, both
+       fine-tuned online (:class:`~dcsc_torchrl.online.PolicyGradientLearner`).
 
     Args:
         task: the registered task (:data:`dcsc_torchrl.tasks.TASKS`).
@@ -527,6 +546,9 @@ def run_cell(
             which method ``ida_expert`` reads; required when ``methods`` names it.
         copilot: Reddy et al.'s trained copilot, which method ``reddy`` runs; required when
             ``methods`` names it, and refused when it was trained with ``operator_name``.
+        state_arbiter: the pretrained state-dependent arbiter method ``dcsc_state`` starts
+            from; required when ``methods`` names it, and refused when its pool holds
+            ``operator_name`` or it was pretrained next to another machine.
 
     Every run seeds torch with :func:`run_seed`, so its rows do not depend on which
     cells or methods ran before it.
@@ -541,6 +563,11 @@ def run_cell(
         if copilot is None:
             raise ValueError("method reddy runs a trained copilot: pass copilot (dcsc copilot trains one)")
         copilot.check_evaluated_next_to(operator_name)
+    if "dcsc_state" in methods:
+        if state_arbiter is None:
+            raise ValueError("method dcsc_state starts from a pretrained arbiter: pass state_arbiter "
+                             "(dcsc arbiter pretrains one)")
+        state_arbiter.check_evaluated_next_to(operator_name, machine_net)
     if "ida" in methods and online.get("theta_critic") == "authority":
         raise ValueError("method ida reads Q(s, a): it cannot run with online.theta_critic=authority, "
                          "whose critic is Q(s, beta)")
@@ -549,7 +576,7 @@ def run_cell(
     base = {"task": task.name, "operator": operator_name, "pretrain_seed": pretrain_seed}
     cell = ProtocolCell(task, operator, machine_net, base=base, pretrain_seed=pretrain_seed, human=human, machine=machine,
                  arbiter=arbiter, online=online, protocol=protocol, progress=progress, expert_q=expert_q,
-                 copilot=copilot)
+                 copilot=copilot, state_arbiter=state_arbiter)
     episodes, calibration = cell.calibrate(scenarios, critic_net, warmup)
     collaboration, learners, collaboration_updates = cell.collaborate(scenarios.collaboration, methods)
     validation, traces = cell.validate(scenarios.validation, methods, learners, trace=trace)

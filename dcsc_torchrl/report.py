@@ -16,6 +16,7 @@ import os
 from collections.abc import Callable, Sequence
 from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -28,6 +29,9 @@ from dcsc_torchrl.config import UsageError  # noqa: E402
 from dcsc_torchrl.methods import BEST_CONSTANT, METHODS  # noqa: E402
 from dcsc_torchrl.runlog import write_atomic  # noqa: E402
 from dcsc_torchrl.task import Task  # noqa: E402
+
+if TYPE_CHECKING:
+    from tensordict import TensorDictBase
 
 REPORT_ORDER = [*(name for name, m in METHODS.items() if m.kind != "sweep"), BEST_CONSTANT.name]
 """The rows of the report's tables: every method, the constant sweep by its best beta."""
@@ -457,6 +461,25 @@ def plot_theta(theta: pd.DataFrame, path: Path, title: str) -> Path:
         ax.grid(alpha=0.3)
     axes[0][-1].legend(fontsize=6, ncol=2)
     fig.suptitle(title)
+    return save_figure(fig, path)
+
+
+def plot_state_beta(frames: TensorDictBase, task: Task, path: Path, title: str) -> Path | None:
+    """The machine's authority over the state: each frame of ``frames`` (``observation``,
+    ``beta``) at the task's :attr:`~dcsc_torchrl.task.Task.state_coordinates`, coloured by beta;
+    ``None`` for a task without them."""
+    if task.state_coordinates is None:
+        return None
+    coordinates = task.state_coordinates(frames["observation"].reshape(-1, frames["observation"].shape[-1]))
+    (x_name, x), (y_name, y) = coordinates.items()
+    beta = frames["beta"].reshape(x.shape[0], -1).mean(-1)
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    points = ax.scatter(x.numpy(), y.numpy(), c=beta.numpy(), s=2, cmap="coolwarm", vmin=0.0, vmax=1.0)
+    fig.colorbar(points, ax=ax, label="β (the machine's share)")
+    ax.set_xlabel(x_name)
+    ax.set_ylabel(y_name)
+    ax.grid(alpha=0.3)
+    ax.set_title(title, fontsize=9)
     return save_figure(fig, path)
 
 

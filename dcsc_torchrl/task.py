@@ -25,7 +25,6 @@ if TYPE_CHECKING:
     from torch import nn
     from torchrl.envs import Transform, TransformedEnv
 
-    from dcsc_torchrl.copilot import CopilotQNetwork
     from dcsc_torchrl.transforms import HumanOperator
 
 
@@ -64,11 +63,14 @@ class Task:
         make_pretraining_envs: ``num_envs -> env``, the batched env the machine is pretrained on.
         make_person: ``t_d -> HumanOperator``, a person at the controls in a window (``dcsc study``;
             ``t_d`` of Eq. 6: no change of the controls for longer is a slow decision).
-        make_copilot_network: ``hidden -> CopilotQNetwork``, Reddy et al.'s copilot Q network on
+        make_copilot_network: ``hidden -> CopilotQNetwork`` (:mod:`dcsc_torchrl.copilot`), Reddy et al.'s copilot Q network on
             what the task lets it see and its finite action set (:mod:`dcsc_torchrl.copilot`);
             ``None``: the task has no copilot, and no ``reddy`` method.
         make_copilot_envs: ``(num_envs, transforms) -> env``, fresh scenarios drawn as the
             evaluation draws them (never a validation seed), the copilot's training envs.
+        state_coordinates: ``observation [*batch, obs] -> {name: [*batch]}``, the two
+            coordinates of the state a figure of beta over the state is drawn against
+            (LunarLander: x minus the pad's x, and altitude); ``None``: no such figure.
     """
 
     name: str
@@ -91,8 +93,9 @@ class Task:
     action_labels: tuple[str, ...] = ()
     plot_trajectories: Callable[[pd.DataFrame, int, Path, str, Callable[[str], str]], Path] | None = field(default=None, repr=False)
     authority_rule: Callable[[torch.Tensor], torch.Tensor] | None = field(default=None, repr=False)
-    make_copilot_network: Callable[[Sequence[int]], CopilotQNetwork] | None = field(default=None, repr=False)
+    make_copilot_network: Callable[[Sequence[int]], nn.Module] | None = field(default=None, repr=False)
     make_copilot_envs: Callable[[int, Sequence[Transform]], TransformedEnv] | None = field(default=None, repr=False)
+    state_coordinates: Callable[[torch.Tensor], dict[str, torch.Tensor]] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if not self.action_labels:

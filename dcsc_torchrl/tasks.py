@@ -135,6 +135,11 @@ def _over_the_pad(observation: torch.Tensor) -> torch.Tensor:
     return (observation[..., 0] - observation[..., 8]).abs() < PAD_HALF_WIDTH / 2
 
 
+def _lunar_coordinates(observation: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Where the lander is against the pad: its x minus the pad's x, and its altitude."""
+    return {"x − pad": observation[..., 0] - observation[..., 8], "altitude": observation[..., 1]}
+
+
 def _lunar_copilot_network(hidden: Sequence[int]) -> CopilotQNetwork:
     """Reddy et al.'s LunarLander copilot: the 4 keys, the pad's x masked (deepassist's ``obs[8]``)."""
     import torch
@@ -190,6 +195,7 @@ TASKS: dict[str, Task] = {
             make_pretraining_envs=_lunar_pretraining_envs, make_person=_lunar_person,
             authority_rule=_over_the_pad,
             make_copilot_network=_lunar_copilot_network, make_copilot_envs=_lunar_copilot_envs,
+            state_coordinates=_lunar_coordinates,
         ),
         Task(
             name="uav", title="UAV path planning", machine_label="DDPG", discrete=False,

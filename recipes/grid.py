@@ -36,6 +36,7 @@ from dcsc_torchrl.recipes.machines import (
     expert_q,
     load_machine_checkpoint,
     pretrained_machine,
+    state_arbiter_for,
 )
 from dcsc_torchrl.recipes.settings import cell_settings, check_names, task_config
 from dcsc_torchrl.report import write_task_figures, write_task_summary
@@ -96,7 +97,7 @@ class TaskGrid:
 def make_grid(task: str, cfg: DictConfig, presets: Sequence[str], seeds: Sequence[int], *,
               quick: bool = False) -> TaskGrid:
     """The cells of ``task`` for ``presets`` x ``seeds`` (each once, in order); ``pretrain.out_dir``
-    (and ``ida.expert``, ``reddy.copilots``) made absolute, so that the cells can run in other
+    (and ``ida.expert``, ``reddy.copilots``, ``state.arbiters``) made absolute, so that the cells can run in other
     processes or nodes."""
     given = str(cfg.pretrain.out_dir)
     cfg.pretrain.out_dir = str(Path(given).resolve())
@@ -104,6 +105,8 @@ def make_grid(task: str, cfg: DictConfig, presets: Sequence[str], seeds: Sequenc
         cfg.ida.expert = str(Path(cfg.ida.expert).resolve())
     if cfg.reddy.copilots is not None:
         cfg.reddy.copilots = [str(Path(path).resolve()) for path in cfg.reddy.copilots]
+    if "state" in cfg and cfg.state.arbiters is not None:
+        cfg.state.arbiters = [str(Path(path).resolve()) for path in cfg.state.arbiters]
     seeds = list(dict.fromkeys(int(s) for s in seeds))
     grid, main_operator = cell_grid(list(dict.fromkeys(presets)), seeds, cfg.operator.main)
     cells = [Cell(task, preset, seed, trace=traced) for seed, preset, traced in grid]
@@ -123,9 +126,10 @@ def write_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: Path,
     methods = task_methods(task, methods)
     expert = expert_q(task, cfg) if "ida_expert" in methods else None
     copilot = copilot_for(task, cfg, cell.operator) if "reddy" in methods else None
+    state = state_arbiter_for(task, cfg, cell.operator, machine) if "dcsc_state" in methods else None
     result = run_cell(task, task.make_operator(cell.operator), machine, critic, operator_name=cell.operator,
                       pretrain_seed=cell.pretrain_seed, methods=methods, trace=cell.trace, expert_q=expert,
-                      copilot=copilot,
+                      copilot=copilot, state_arbiter=state,
                       **cell_settings(cfg),
                       progress=lambda line: print(f"  {cell.name}: {line}", file=sys.stderr, flush=True))
     calibration = [result.calibration] if result.calibration else []
@@ -241,8 +245,9 @@ def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], exe
     cells not done yet with ``executor`` (:func:`local_executor`, or ``dcsc sweep``'s Ray
     tasks), then gathers every task's outputs (:func:`gather`, the one writer), the failures
     reported. A grid that runs ``ida_expert`` loads its expert first (:func:`expert_q`), one that
-    runs ``reddy`` each cell's copilot (:func:`copilot_for`): a missing one is refused before any
-    cell runs."""
+    runs ``reddy`` each cell's copilot (:func:`copilot_for`), one that runs ``dcsc_state`` each
+    cell's pretrained arbiter (:func:`state_arbiter_for`; its machine is checked in the cell): a
+    missing one is refused before any cell runs."""
     for grid in grids:
         writable_folder(out / grid.task)
         grid_methods = task_methods(get_task(grid.task), methods)
@@ -251,6 +256,9 @@ def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], exe
         if "reddy" in grid_methods:
             for cell in grid.cells:
                 copilot_for(get_task(grid.task), grid.cfg, cell.operator)
+        if "dcsc_state" in grid_methods:
+            for cell in grid.cells:
+                state_arbiter_for(get_task(grid.task), grid.cfg, cell.operator)
     with contextlib.ExitStack() as locks:
         for grid in grids:
             locks.enter_context(folder_lock(out / grid.task))

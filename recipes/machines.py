@@ -1,7 +1,7 @@
 """Where a cell's machine comes from: the checkpoint of its pretraining seed, pretrained (or
 resumed) first when missing, or the machine shipped with the package; the table of the
-recipe that pretrains each task's machine; the expert's Q that ``ida_expert`` reads and the
-copilot that ``reddy`` runs."""
+recipe that pretrains each task's machine; the expert's Q that ``ida_expert`` reads, the
+copilot that ``reddy`` runs and the pretrained arbiter ``dcsc_state`` starts from."""
 
 from __future__ import annotations
 
@@ -17,6 +17,11 @@ from dcsc_torchrl.config import ConfigError
 from dcsc_torchrl.copilot import TrainedCopilot, load_copilot
 from dcsc_torchrl.networks import machine_from_checkpoint, machine_view
 from dcsc_torchrl.recipes.settings import pretrain_config
+from dcsc_torchrl.state_arbiter import (
+    PretrainedArbiter,
+    load_pretrained_arbiter,
+    machine_fingerprint,
+)
 from dcsc_torchrl.tasks import Task
 
 
@@ -129,6 +134,34 @@ def copilot_for(task: Task, cfg: DictConfig, operator: str) -> TrainedCopilot:
         pools.append(f"{path}: {', '.join(copilot.operators)}")
     raise ConfigError(f"reddy.copilots: every copilot was trained with operator {operator!r} ({'; '.join(pools)}): "
                       f"train one without it (dcsc copilot {task.name} pool=[...])")
+
+
+def state_arbiter_for(task: Task, cfg: DictConfig, operator: str,
+                      machine_net: torch.nn.Module | None = None) -> PretrainedArbiter:
+    """Method ``dcsc_state``'s pretrained arbiter next to ``operator``: the first of
+    ``state.arbiters`` whose pool lacks it and, given ``machine_net``, that was pretrained next
+    to that machine (without it: the first whose pool lacks it, as a check before any cell).
+
+    Raises:
+        ConfigError: ``state.arbiters`` is not set or names a file that holds no such arbiter,
+            or no arbiter fits (one line naming each file's pool and machine).
+    """
+    paths = cfg.state.arbiters if "state" in cfg else None
+    if not paths:
+        raise ConfigError(f"method dcsc_state needs state.arbiters: pretrained arbiters (dcsc arbiter {task.name} "
+                          f"writes arbiter.pt), e.g. state.arbiters=[runs/arbiter_{task.name}/arbiter.pt]")
+    fingerprint = None if machine_net is None else machine_fingerprint(machine_net)
+    seen = []
+    for path in paths:
+        if not Path(path).is_file():
+            raise ConfigError(f"state.arbiters: no pretrained arbiter at {path}")
+        pretrained = load_pretrained_arbiter(path, task)
+        if operator not in pretrained.operators and fingerprint in (None, pretrained.machine):
+            return pretrained
+        seen.append(f"{path}: pool {', '.join(pretrained.operators)}, machine {pretrained.machine}")
+    machine = "" if fingerprint is None else f" and machine {fingerprint}"
+    raise ConfigError(f"state.arbiters: none was pretrained without operator {operator!r}{machine} ({'; '.join(seen)}): "
+                      f"pretrain one (dcsc arbiter {task.name} state.pool=[...])")
 
 
 def expert_q(task: Task, cfg: DictConfig) -> torch.nn.Module:

@@ -121,6 +121,16 @@ def add_copilot_options(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
                     "there is what reddy.copilots names", example="pool=[noisy,laggy,distracted] train.frames=50000")
 
 
+def add_arbiter_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``dcsc arbiter`` after the task: ``[--quick] [--out DIR] [key=value ...]``."""
+    parser.add_argument("--quick", action="store_true", help="the tiny setting of the yaml's quick block (tests)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="folder of arbiter.pt, pretraining.csv and fig_state_beta.png (default runs/arbiter_<task>); "
+                             "arbiter.pt is what state.arbiters names")
+    _overrides(parser, "\"state.pool=[noisy,laggy]\" pretrain.observes=blind")
+    return parser
+
+
 def add_run_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dcsc run`` (and ``python recipes/shared_control.py``) after the task."""
     parser.add_argument("--quick", action="store_true", help="the tiny setting of the yaml's quick block (tests)")

@@ -62,8 +62,9 @@ def test_the_registry_module_loads_no_torch():
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout == "False\n"
 
 
-@pytest.mark.parametrize("method", [m for m in METHOD_NAMES if METHODS[m].kind != "frozen" and m != "reddy"])
-def test_every_method_but_the_ablation_and_reddy_has_an_arbiter_of_the_task_dims(method):
+@pytest.mark.parametrize("method", [m for m in METHOD_NAMES
+                                    if METHODS[m].kind not in ("frozen", "pretrained") and m != "reddy"])
+def test_every_method_the_registry_builds_has_an_arbiter_of_the_task_dims(method):
     arbiter = make_arbiter(method, 3, theta_init=0.5, hula_threshold=0.1, constant_beta=0.2,
                            rule=lambda obs: obs[..., 0] > 0, q_value=ConcatInputs(torch.nn.Linear(12, 1)),
                            expert_q=ConcatInputs(torch.nn.Linear(12, 1)), discrete=False)
@@ -92,7 +93,7 @@ def _confidences(n: int):
 
 
 def test_the_rule_method_runs_for_a_task_with_an_authority_rule_only():
-    assert tuple(m for m in METHOD_NAMES if m not in ("ida_expert", "reddy")) == DEFAULT_METHODS
+    assert tuple(m for m in METHOD_NAMES if m not in ("ida_expert", "reddy", "dcsc_state")) == DEFAULT_METHODS
     assert task_methods(get_task("lunarlander")) == DEFAULT_METHODS
     assert task_methods(get_task("uav")) == tuple(m for m in DEFAULT_METHODS if m != "rule")
     assert "reddy" in task_methods(get_task("lunarlander"), METHOD_NAMES)
@@ -101,6 +102,10 @@ def test_the_rule_method_runs_for_a_task_with_an_authority_rule_only():
         make_arbiter("rule", 1)
     with pytest.raises(ValueError, match="method reddy brings its own machine"):
         make_arbiter("reddy", 1)
+    with pytest.raises(ValueError, match="method dcsc_state brings its own arbiter"):
+        make_arbiter("dcsc_state", 1)
+    assert "dcsc_state" in task_methods(get_task("lunarlander"), METHOD_NAMES)
+    assert "dcsc_state" not in task_methods(get_task("uav"), METHOD_NAMES)  # A2C on the mixture of keys
 
 
 def test_the_lunar_rule_hands_the_machine_the_controls_over_the_middle_of_the_pad():
