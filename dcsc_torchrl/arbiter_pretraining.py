@@ -57,6 +57,7 @@ def pretrain_state_arbiter(
     scenarios: int,
     calibration_runs: int,
     first_seed: int,
+    rollout_length: int,
     hidden: Sequence[int],
     value_hidden: Sequence[int],
     spread: float,
@@ -83,6 +84,7 @@ def pretrain_state_arbiter(
         scenarios: scenarios per play (one env each).
         calibration_runs: scenarios each operator flies alone first.
         first_seed: the first development scenario.
+        rollout_length: frames per env between two updates (GAE runs along them).
         hidden, value_hidden: the arbiter's and the value critic's hidden widths.
         spread: the largest move of theta_t (:class:`StateDependentArbiter`).
         learner: :data:`LEARNER_SETTINGS`.
@@ -99,7 +101,7 @@ def pretrain_state_arbiter(
                          "keys; a continuous task has no such mixture")
     if not pool:
         raise ValueError("the pretraining pool holds no operator")
-    sampling = dataclasses.replace(protocol, shared_action="sample")
+    sampling = dataclasses.replace(protocol, shared_action="sample", rollout_length=rollout_length)
     cells = {name: ProtocolCell(task, operator, machine_net, base={}, pretrain_seed=seed, human=human,
                                 machine=machine, arbiter=arbiter, online={}, protocol=sampling, progress=progress)
              for name, operator in pool.items()}
@@ -130,7 +132,7 @@ def pretrain_state_arbiter(
                                torch_seed=run_seed(seed, round_index, "arbiter_pretraining", name))
             last_round.append(result.frames)
             rows.append({"round": round_index, "operator": name, "first_seed": seeds[0], "scenarios": scenarios,
-                         "frames": (len(update.history) - before) * scenarios * protocol.rollout_length,
+                         "frames": (len(update.history) - before) * scenarios * rollout_length,
                          "updates": len(update.history),
                          "success": sum(bool(row["success"]) for row in result.rows) / len(result.rows),
                          "mean_beta": sum(row["mean_beta"] for row in result.rows) / len(result.rows)})

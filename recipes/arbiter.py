@@ -58,7 +58,7 @@ def pretrain(task: Task, cfg: DictConfig, out: Path, *, quick: bool = False) -> 
         task, machine_net, {name: task.make_operator(name) for name in state.pool}, human=settings["human"],
         machine=settings["machine"], arbiter=settings["arbiter"], protocol=settings["protocol"],
         rounds=state.rounds, scenarios=state.scenarios, calibration_runs=state.calibration_runs,
-        first_seed=state.first_seed, hidden=list(state.hidden), value_hidden=list(state.value_hidden),
+        first_seed=state.first_seed, rollout_length=state.rollout_length, hidden=list(state.hidden), value_hidden=list(state.value_hidden),
         spread=state.spread, learner={**{key: state[key] for key in LEARNER_SETTINGS if key != "gamma"},
                                       "gamma": cfg.online.gamma},
         seed=seed, progress=lambda line: print(f"  arbiter: {line}", flush=True))
