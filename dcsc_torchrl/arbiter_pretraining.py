@@ -32,6 +32,7 @@ from dcsc_torchrl.protocol import (
     run_seed,
 )
 from dcsc_torchrl.state_arbiter import (
+    LEARNER_SETTINGS,
     PretrainedArbiter,
     StateDependentArbiter,
     machine_fingerprint,
@@ -39,9 +40,6 @@ from dcsc_torchrl.state_arbiter import (
 )
 from dcsc_torchrl.task import Task
 from dcsc_torchrl.transforms import HumanOperator
-
-LEARNER_SETTINGS = ("lr", "gamma", "gae_lambda", "entropy_coeff", "critic_coeff", "max_grad_norm")
-"""The :class:`~dcsc_torchrl.online.PolicyGradientLearner` keywords a pretrained arbiter keeps for its cell."""
 
 
 def pretrain_state_arbiter(
@@ -57,7 +55,6 @@ def pretrain_state_arbiter(
     scenarios: int,
     calibration_runs: int,
     first_seed: int,
-    rollout_length: int,
     hidden: Sequence[int],
     value_hidden: Sequence[int],
     spread: float,
@@ -84,10 +81,9 @@ def pretrain_state_arbiter(
         scenarios: scenarios per play (one env each).
         calibration_runs: scenarios each operator flies alone first.
         first_seed: the first development scenario.
-        rollout_length: frames per env between two updates (GAE runs along them).
         hidden, value_hidden: the arbiter's and the value critic's hidden widths.
         spread: the largest move of theta_t (:class:`StateDependentArbiter`).
-        learner: :data:`LEARNER_SETTINGS`.
+        learner: :data:`~dcsc_torchrl.state_arbiter.LEARNER_SETTINGS`.
         seed: torch's seed for the networks' initialisation and each play.
         progress: called with a short line as each play starts.
 
@@ -101,7 +97,7 @@ def pretrain_state_arbiter(
                          "keys; a continuous task has no such mixture")
     if not pool:
         raise ValueError("the pretraining pool holds no operator")
-    sampling = dataclasses.replace(protocol, shared_action="sample", rollout_length=rollout_length)
+    sampling = dataclasses.replace(protocol, shared_action="sample")
     cells = {name: ProtocolCell(task, operator, machine_net, base={}, pretrain_seed=seed, human=human,
                                 machine=machine, arbiter=arbiter, online={}, protocol=sampling, progress=progress)
              for name, operator in pool.items()}
@@ -118,7 +114,7 @@ def pretrain_state_arbiter(
                                    gain=start["gain"], hidden=hidden, spread=spread)
     value_net = state_value_network(shared.observation_size, value_hidden)
     policies = {name: cell.policy("dcsc_state", shared) for name, cell in cells.items()}
-    settings = {key: float(learner[key]) for key in LEARNER_SETTINGS}
+    settings = {key: int(learner[key]) if key == "segment_length" else float(learner[key]) for key in LEARNER_SETTINGS}
     update = PolicyGradientLearner(next(iter(policies.values())), value_net, **settings)
     rows: list[dict[str, Any]] = []
     last_round: list[TensorDictBase] = []
@@ -132,7 +128,7 @@ def pretrain_state_arbiter(
                                torch_seed=run_seed(seed, round_index, "arbiter_pretraining", name))
             last_round.append(result.frames)
             rows.append({"round": round_index, "operator": name, "first_seed": seeds[0], "scenarios": scenarios,
-                         "frames": (len(update.history) - before) * scenarios * rollout_length,
+                         "frames": (len(update.history) - before) * scenarios * update.segment_length,
                          "updates": len(update.history),
                          "success": sum(bool(row["success"]) for row in result.rows) / len(result.rows),
                          "mean_beta": sum(row["mean_beta"] for row in result.rows) / len(result.rows)})

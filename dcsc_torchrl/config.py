@@ -164,7 +164,7 @@ LIMITS: dict[str, Range] = {
     "state.scenarios": COUNT,
     "state.calibration_runs": COUNT,
     "state.first_seed": NON_NEGATIVE,
-    "state.rollout_length": COUNT,
+    "state.segment_length": COUNT,
     "state.hidden": COUNT,
     "state.value_hidden": COUNT,
     "state.spread": POSITIVE,

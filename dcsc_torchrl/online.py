@@ -315,7 +315,10 @@ class PolicyGradientLearner:
     gradient reaches the network that makes theta depend on the frame.
 
     One gradient step per collected batch ``[envs, time]`` (GAE needs the time dimension),
-    advantages standardised over the batch, the summed loss's gradient clipped.
+    advantages standardised over the batch, the summed loss's gradient clipped. The batches
+    should be ``segment_length`` frames long (the runs that feed it collect that many frames
+    per env between updates): with λ = 1 the advantage is the return over the segment, less
+    ``V``, so a short segment leaves a key's advantage to the next few frames' shaped reward.
 
     Args:
         policy: the discrete shared policy whose arbiter learns.
@@ -326,11 +329,15 @@ class PolicyGradientLearner:
         entropy_coeff: weight of the mixture's entropy bonus.
         critic_coeff: weight of the value critic's loss.
         max_grad_norm: the gradient norm a step is clipped to.
+        segment_length: frames per env of the batches it should be fed.
     """
 
     def __init__(self, policy: SharedPolicyModule, value_net: torch.nn.Module, *, lr: float, gamma: float,
-                 gae_lambda: float, entropy_coeff: float, critic_coeff: float, max_grad_norm: float) -> None:
-        self.policy, self.critic = policy, value_net
+                 gae_lambda: float, entropy_coeff: float, critic_coeff: float, max_grad_norm: float,
+                 segment_length: int) -> None:
+        if int(segment_length) != segment_length or segment_length < 1:
+            raise ValueError(f"segment_length must be an integer >= 1, got {segment_length!r}")
+        self.policy, self.critic, self.segment_length = policy, value_net, int(segment_length)
         self.loss = A2CLoss(policy.authority_actor(), ValueOperator(value_net, in_keys=["observation"]),
                             entropy_coeff=entropy_coeff, critic_coeff=critic_coeff, loss_critic_type="l2")
         self.loss.make_value_estimator(ValueEstimators.GAE, gamma=gamma, lmbda=gae_lambda)

@@ -42,7 +42,12 @@ from dcsc_torchrl.methods import (
     make_arbiter,
 )
 from dcsc_torchrl.networks import authority_critic
-from dcsc_torchrl.online import WARMUP_TARGETS, OnlineLearner, make_online_learner
+from dcsc_torchrl.online import (
+    WARMUP_TARGETS,
+    OnlineLearner,
+    PolicyGradientLearner,
+    make_online_learner,
+)
 from dcsc_torchrl.policy import SharedPolicyModule, plays_operator_alone
 from dcsc_torchrl.state_arbiter import PretrainedArbiter
 from dcsc_torchrl.task import Task
@@ -340,7 +345,9 @@ class ProtocolCell:
         env = self.make_env(seeds, operator_seed=operator_seed(seed, self.pretrain_seed, seeds[0]),
                             first_episode_only=update is None if hold_done is None else hold_done,
                             operator=self.machine_alone_operator if method == "machine" else None)
-        result = run_scenarios(env, policy, self.task, rollout_length=self.protocol.rollout_length, update=update,
+        rollout_length = (update.segment_length if isinstance(update, PolicyGradientLearner)
+                          else self.protocol.rollout_length)
+        result = run_scenarios(env, policy, self.task, rollout_length=rollout_length, update=update,
                                trace=trace, exploration_type=self.protocol.exploration_type)
         env.close()
         return result

@@ -36,6 +36,13 @@ def shipped_path(task: Task, observes: str | None = None) -> Path:
     return SHIPPED_DIR / f"{task.name}{view}_seed{SHIPPED_SEED}.pt"
 
 
+def shipped_arbiter_path(task: Task, observes: str | None = None) -> Path:
+    """Where the state-dependent arbiter pretrained next to ``task``'s shipped machine (of
+    ``observes``) lies: ``<machine file's stem>_state.pt``."""
+    machine = shipped_path(task, observes)
+    return machine.with_name(f"{machine.stem}_state.pt")
+
+
 def greedy_return(task: Task, actor: torch.nn.Module) -> float:
     """The return of one greedy, dropout-free episode of the machine alone on :data:`GREEDY_SEED`.
 

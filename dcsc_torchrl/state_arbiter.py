@@ -35,7 +35,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 
 from dcsc_torchrl.arbiters import Arbiter, centred_fusion_weight, fusion_weight
-from dcsc_torchrl.checkpoint import load_checkpoint, save_checkpoint
+from dcsc_torchrl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from dcsc_torchrl.checks import check_in_range, check_values
 from dcsc_torchrl.networks import mlp
 
@@ -43,6 +43,9 @@ if TYPE_CHECKING:
     from dcsc_torchrl.online import PolicyGradientLearner
     from dcsc_torchrl.policy import SharedPolicyModule
     from dcsc_torchrl.task import Task
+
+LEARNER_SETTINGS = ("lr", "gamma", "gae_lambda", "entropy_coeff", "critic_coeff", "max_grad_norm", "segment_length")
+"""The :class:`~dcsc_torchrl.online.PolicyGradientLearner` keywords a pretrained arbiter keeps for its cell."""
 
 STATE_FORMS = ("paper", "centred")
 """The two forms theta_t enters: Eq. 15 as printed, ``sigmoid(theta_t b_t)``, and the centred one."""
@@ -201,6 +204,10 @@ def load_pretrained_arbiter(path: str | Path, task: Task) -> PretrainedArbiter:
         ValueError: no such file, or a checkpoint of something else (one line).
     """
     data = load_checkpoint(path, task=state_arbiter_task(task), modules=("arbiter", "value"))
+    missing = [key for key in LEARNER_SETTINGS if key not in data.get("settings", {})]
+    if missing:
+        raise CheckpointError(f"{path} lacks the learner's settings {missing} (written by another version of "
+                              "dcsc-torchrl?): pretrain it again (dcsc arbiter)")
     arbiter = StateDependentArbiter.from_state(data["state"]["arbiter"])
     arbiter.load_state_dict(data["state"]["arbiter"])
     value_net = state_value_network(arbiter.observation_size, data["config"]["network"]["value_hidden"])

@@ -25,14 +25,14 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig
 
-from dcsc_torchrl.arbiter_pretraining import LEARNER_SETTINGS, pretrain_state_arbiter
+from dcsc_torchrl.arbiter_pretraining import pretrain_state_arbiter
 from dcsc_torchrl.config import to_plain, writable_folder
 from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.recipes.machines import pretrained_machine
 from dcsc_torchrl.recipes.settings import cell_settings, check_names, task_config
 from dcsc_torchrl.report import plot_state_beta
 from dcsc_torchrl.runlog import write_atomic
-from dcsc_torchrl.state_arbiter import save_pretrained_arbiter
+from dcsc_torchrl.state_arbiter import LEARNER_SETTINGS, save_pretrained_arbiter
 from dcsc_torchrl.tasks import Task
 
 
@@ -58,7 +58,7 @@ def pretrain(task: Task, cfg: DictConfig, out: Path, *, quick: bool = False) -> 
         task, machine_net, {name: task.make_operator(name) for name in state.pool}, human=settings["human"],
         machine=settings["machine"], arbiter=settings["arbiter"], protocol=settings["protocol"],
         rounds=state.rounds, scenarios=state.scenarios, calibration_runs=state.calibration_runs,
-        first_seed=state.first_seed, rollout_length=state.rollout_length, hidden=list(state.hidden), value_hidden=list(state.value_hidden),
+        first_seed=state.first_seed, hidden=list(state.hidden), value_hidden=list(state.value_hidden),
         spread=state.spread, learner={**{key: state[key] for key in LEARNER_SETTINGS if key != "gamma"},
                                       "gamma": cfg.online.gamma},
         seed=seed, progress=lambda line: print(f"  arbiter: {line}", flush=True))
@@ -66,7 +66,8 @@ def pretrain(task: Task, cfg: DictConfig, out: Path, *, quick: bool = False) -> 
     table = pd.DataFrame(rows)
     write_atomic(out / "pretraining.csv", lambda file: table.to_csv(file, index=False))
     plot_state_beta(frames, task, out / "fig_state_beta.png",
-                    f"{task.title}: the state-dependent arbiter's β after pretraining ({', '.join(state.pool)})")
+                    f"{task.title}: the state-dependent arbiter's β after pretraining\n"
+                    f"(the last round's frames; pool {', '.join(state.pool)})")
     return save_pretrained_arbiter(out / "arbiter.pt", task, pretrained, to_plain(cfg), machine_seed=seed,
                                    frames=int(table["frames"].sum()), seconds=time.perf_counter() - start)
 

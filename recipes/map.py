@@ -13,7 +13,10 @@ stopped map resumes; ``--fresh`` starts every machine's folder over.
 The field's assistants need inputs of their own, made before any cell runs: ``ida_expert``
 reads the critic of machine ``expert`` (pretrained first when missing), ``reddy`` the
 copilots of ``copilots`` (``dcsc copilot``, trained into ``{pretrain_dir}/copilot-<name>/``
-when missing; each cell takes the first not trained with its operator).
+when missing; each cell takes the first not trained with its operator), ``dcsc_state`` the
+arbiters of ``arbiters`` (``dcsc arbiter``, pretrained next to every selected machine into
+``{pretrain_dir}/<machine>/arbiter-<name>/``, the machines pretrained first; each cell takes
+the one of its machine whose pool lacks its operator).
 """
 
 from __future__ import annotations
@@ -58,12 +61,13 @@ def map_config(overrides: Sequence[str] = (), *, quick: bool = False) -> DictCon
     cfg.methods = check_names("methods", "method", distinct("methods", cfg.methods), list(METHOD_NAMES))
     cfg.operators = distinct("operators", cfg.operators)
     check_names("expert", "machine", [cfg.expert], list(cfg.machines))
-    for name, pool in cfg.copilots.items():
-        check_names(f"copilots.{name}", "operator preset", list(pool), list(PRESETS))
+    for group in ("copilots", "arbiters"):
+        for name, pool in cfg[group].items():
+            check_names(f"{group}.{name}", "operator preset", list(pool), list(PRESETS))
     return cfg
 
 
-def _pretrain_expert(task: str, overrides: list[str], operators: list[str], quick: bool) -> None:
+def _pretrain_machine(task: str, overrides: list[str], operators: list[str], quick: bool) -> None:
     from dcsc_torchrl.recipes.machines import pretrained_machine
 
     cfg = checked_grid(task, quick=quick, overrides=overrides, operators=operators, option="operators").cfg
@@ -78,17 +82,38 @@ def _train_copilot(task: str, pool: list[str], folder: Path, quick: bool) -> Non
           resume=(folder / "checkpoint.pt").is_file())
 
 
+def _pretrain_arbiter(task: str, overrides: list[str], pool: list[str], folder: Path, quick: bool) -> None:
+    from dcsc_torchrl.recipes.arbiter import main
+
+    print(f"map: pretraining arbiter {folder.parent.name}/{folder.name} ({', '.join(pool)})", flush=True)
+    main(get_task(task), [*overrides, f"state.pool=[{','.join(pool)}]"], quick=quick, out=folder)
+
+
+def _run_jobs(jobs: Sequence[partial], workers: int) -> None:
+    """``jobs`` ``workers`` at a time, each in its own process when more than one."""
+    if workers == 1 or len(jobs) < 2:
+        for job in jobs:
+            job()
+        return
+    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=get_context("spawn")) as pool:
+        for future in [pool.submit(job) for job in jobs]:
+            future.result()
+
+
 def ready_assistants(cfg: DictConfig, *, quick: bool, workers: int = 1) -> list[str]:
     """The protocol settings of the assistants the map's methods read, made when missing
     (``workers`` at a time, each in its own process when more than one): ``ida.expert``
-    (machine ``expert``'s seed-0 checkpoint, pretrained) and ``reddy.copilots`` (trained)."""
-    jobs, settings = [], []
+    (machine ``expert``'s seed-0 checkpoint, pretrained), ``reddy.copilots`` (trained) and
+    ``state.arbiters`` (pretrained next to every selected machine, after the machines)."""
+    jobs, settings, machines = [], [], {}
     if "ida_expert" in cfg.methods:
-        overrides = machine_overrides(cfg, cfg.expert)
-        path = checkpoint_path(Path(cfg.pretrain_dir).resolve() / cfg.expert, 0)
-        if not path.is_file():
-            jobs.append(partial(_pretrain_expert, cfg.task, overrides, list(cfg.operators), quick))
-        settings.append(f"ida.expert={path}")
+        machines[cfg.expert] = checkpoint_path(Path(cfg.pretrain_dir).resolve() / cfg.expert, 0)
+        settings.append(f"ida.expert={machines[cfg.expert]}")
+    if "dcsc_state" in cfg.methods:
+        machines.update({name: checkpoint_path(Path(cfg.pretrain_dir).resolve() / name, cfg.machines[name].seeds[0])
+                         for name in cfg.selected})
+    jobs += [partial(_pretrain_machine, cfg.task, machine_overrides(cfg, name), list(cfg.operators), quick)
+             for name, path in machines.items() if not path.is_file()]
     if "reddy" in cfg.methods:
         paths = []
         for name, pool in cfg.copilots.items():
@@ -97,13 +122,18 @@ def ready_assistants(cfg: DictConfig, *, quick: bool, workers: int = 1) -> list[
                 jobs.append(partial(_train_copilot, cfg.task, list(pool), folder, quick))
             paths.append(str(folder / "copilot.pt"))
         settings.append(f"reddy.copilots=[{','.join(paths)}]")
-    if workers == 1 or len(jobs) < 2:
-        for job in jobs:
-            job()
-    else:
-        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=get_context("spawn")) as pool:
-            for future in [pool.submit(job) for job in jobs]:
-                future.result()
+    _run_jobs(jobs, workers)
+    if "dcsc_state" in cfg.methods:  # next to the machines, which exist now
+        jobs, paths = [], []
+        for machine in cfg.selected:
+            for name, pool in cfg.arbiters.items():
+                folder = (Path(cfg.pretrain_dir) / machine / f"arbiter-{name}").resolve()
+                if not (folder / "arbiter.pt").is_file():
+                    jobs.append(partial(_pretrain_arbiter, cfg.task, machine_overrides(cfg, machine), list(pool),
+                                        folder, quick))
+                paths.append(str(folder / "arbiter.pt"))
+        _run_jobs(jobs, workers)
+        settings.append(f"state.arbiters=[{','.join(paths)}]")
     return settings
 
 

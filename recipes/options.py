@@ -208,15 +208,18 @@ def add_report_options(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
 
 def add_play_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dcsc play`` (the ones :func:`dcsc_torchrl.recipes.play.run_play` reads)."""
-    parser.add_argument("--assist", choices=["dcsc", "ida", "reddy", "none"], default="dcsc",
-                        help="share control with the pretrained machine: DC-SC's learned arbiter (dcsc) or IDA's "
-                             "intervention on its Q critic (ida); with Reddy et al.'s trained copilot (reddy); "
-                             "or fly alone (none)")
+    parser.add_argument("--assist", choices=["dcsc", "state", "ida", "reddy", "none"], default="dcsc",
+                        help="share control with the pretrained machine: DC-SC's learned arbiter (dcsc), the "
+                             "state-dependent arbiter pretrained in simulation (state) or IDA's intervention on its "
+                             "Q critic (ida); with Reddy et al.'s trained copilot (reddy); or fly alone (none)")
+    parser.add_argument("--arbiter", type=Path, default=None,
+                        help="the pretrained arbiter of --assist state (dcsc arbiter writes one; default: the one "
+                             "shipped for the shipped machine)")
     parser.add_argument("--copilot", type=Path, default=Path("runs/copilot_lunarlander/copilot.pt"),
                         help="the copilot of --assist reddy (dcsc copilot writes it; default "
                              "runs/copilot_lunarlander/copilot.pt)")
     parser.add_argument("--checkpoint", type=Path, default=None,
-                        help="LunarLander pretraining checkpoint for --assist dcsc / ida (default: where dcsc run "
+                        help="LunarLander pretraining checkpoint for --assist dcsc / state / ida (default: where dcsc run "
                              "reads seed 0's, <pretrain.out_dir>/seed0/checkpoint.pt of "
                              "recipes/shared_control_lunarlander.yaml)")
     parser.add_argument("--episodes", type=_int_at_least(1), default=3, help="episodes to fly (default 3)")

@@ -1,7 +1,7 @@
 """``dcsc play lunarlander``: fly TargetLunarLander yourself, alone or with DC-SC.
 
-    dcsc play lunarlander [--assist dcsc|ida|reddy|none] [--checkpoint PATH] [--copilot PATH]
-                          [--episodes N] [--seed S] [--out DIR]
+    dcsc play lunarlander [--assist dcsc|state|ida|reddy|none] [--checkpoint PATH] [--copilot PATH]
+                          [--arbiter PATH] [--episodes N] [--seed S] [--out DIR]
 
 The frames of a ``render_mode="rgb_array"`` TargetLunarLander go to the
 :class:`~dcsc_torchrl.humans.KeyboardPilot`'s window. With ``--assist dcsc`` the
@@ -9,6 +9,9 @@ pretrained machine (MC dropout, Eqs. 10, 13) shares control with you through the
 arbiter of the simulated runs (``arbiter.form`` of ``recipes/shared_control_lunarlander.yaml``),
 and theta (and the Q critic, unless the yaml's ``online.critic_lr`` is 0) learn online as
 in Algorithm 1, once every ``protocol.rollout_length`` frames; b_h, b_m and beta are drawn live on screen. With
+``--assist state`` the state-dependent arbiter pretrained in simulation next to that machine
+(``--arbiter``; by default the one shipped for the shipped machine) shares control, its
+authority a function of the frame, fine-tuned online as in a cell (:mod:`dcsc_torchrl.state_arbiter`). With
 ``--assist ida`` the machine takes a frame exactly where its pretrained Q critic rates the
 machine's key above yours (IDA's intervention, :class:`~dcsc_torchrl.arbiters.InterventionArbiter`),
 nothing learning. With ``--assist reddy`` Reddy et al.'s trained copilot (``dcsc copilot``,
@@ -26,6 +29,7 @@ appended, every few frames and on Ctrl-C, so a user study is a folder of CSVs, o
 from __future__ import annotations
 
 import argparse
+import copy
 import math
 import time
 from pathlib import Path
@@ -52,6 +56,7 @@ from dcsc_torchrl.protocol import ProtocolSettings
 from dcsc_torchrl.recipes.configs import CONFIGS
 from dcsc_torchrl.recipes.machines import ready_machine
 from dcsc_torchrl.runlog import RunLog
+from dcsc_torchrl.state_arbiter import PretrainedArbiter, load_pretrained_arbiter
 from dcsc_torchrl.tasks import get_task
 from dcsc_torchrl.transforms import HumanConfidenceTransform, HumanOperatorTransform
 
@@ -84,6 +89,18 @@ def load_play_copilot(path: Path) -> TrainedCopilot:
     return load_copilot(path, TASK)
 
 
+def load_play_arbiter(path: Path | None, cfg: DictConfig) -> PretrainedArbiter:
+    """The pretrained arbiter of ``--assist state``: ``path``, or the one shipped for the shipped
+    machine of ``pretrain.observes``; a FileNotFoundError that says how to get one."""
+    from dcsc_torchrl.shipped import shipped_arbiter_path
+
+    path = shipped_arbiter_path(TASK, cfg.pretrain.get("observes")) if path is None else Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no pretrained arbiter at {path}: pretrain one next to your machine with "
+                                "`dcsc arbiter lunarlander`, or pass --arbiter PATH")
+    return load_pretrained_arbiter(path, TASK)
+
+
 def load_machine(path: Path) -> tuple[nn.Module, nn.Module]:
     """The pretrained LunarLander actor and Q critic, or a FileNotFoundError that says how to get them."""
     if not Path(path).is_file():
@@ -114,10 +131,12 @@ def assist_method(cfg: DictConfig) -> str:
 
 
 def make_policy(env: TransformedEnv, machine: nn.Module | None, cfg: DictConfig | None = None, *,
-                q_value: nn.Module | None = None, copilot: TrainedCopilot | None = None) -> TensorDictModuleBase:
+                q_value: nn.Module | None = None, copilot: TrainedCopilot | None = None,
+                state_arbiter: PretrainedArbiter | None = None) -> TensorDictModuleBase:
     """The shared policy around ``machine`` (as the simulated runs build it), or the pilot alone:
-    DC-SC's learned arbiter, with ``q_value`` IDA's intervention on that Q critic; or
-    ``copilot``'s own (Reddy et al.'s copilot and its tolerance rule)."""
+    DC-SC's learned arbiter, with ``q_value`` IDA's intervention on that Q critic, with
+    ``state_arbiter`` a copy of that pretrained state-dependent arbiter; or ``copilot``'s own
+    (Reddy et al.'s copilot and its tolerance rule)."""
     if copilot is not None:
         return copilot.policy(env.full_action_spec["action"])
     if machine is None:
@@ -128,6 +147,8 @@ def make_policy(env: TransformedEnv, machine: nn.Module | None, cfg: DictConfig 
     cfg = play_config() if cfg is None else cfg
     if q_value is not None:
         arbiter = make_arbiter("ida", TASK.action_dims, q_value=q_value, discrete=TASK.discrete)
+    elif state_arbiter is not None:
+        arbiter = copy.deepcopy(state_arbiter.arbiter)
     else:
         method = assist_method(cfg)
         arbiter = make_arbiter(method, TASK.action_dims, **ArbiterSettings(**cfg.arbiter).start(method))
@@ -297,22 +318,29 @@ def run_play(args: argparse.Namespace) -> None:
     cfg = play_config()
     confidence = HumanConfidenceTransform(**cfg.human)
     try:
-        networks = ready_machine(TASK, cfg, args.checkpoint) if args.assist in ("dcsc", "ida") else None
+        networks = ready_machine(TASK, cfg, args.checkpoint) if args.assist in ("dcsc", "state", "ida") else None
         copilot = load_play_copilot(args.copilot) if args.assist == "reddy" else None
-        method = {"dcsc": assist_method(cfg), "ida": "ida", "reddy": "reddy", "none": "operator"}[args.assist]
+        state = load_play_arbiter(args.arbiter, cfg) if args.assist == "state" else None
+        if state is not None:
+            state.check_evaluated_next_to("person", networks[0])  # the machine it was pretrained next to
+        method = {"dcsc": assist_method(cfg), "state": "dcsc_state", "ida": "ida", "reddy": "reddy",
+                  "none": "operator"}[args.assist]
         recorder = PlayRecorder(args.out, method, args.participant)  # its folder checked before the window opens
         render_env = gym.make(LUNAR_ID, render_mode="rgb_array")
         pilot = KeyboardPilot(frame_source=render_env.render, t_d=confidence.t_d)
-    except (FileNotFoundError, NoDisplayError) as error:
+    except (FileNotFoundError, NoDisplayError, ValueError) as error:
         raise SystemExit(f"dcsc play: {error}") from error
     env = make_play_env(render_env, pilot, confidence, args.seed)
     machine, critic = networks if networks is not None else (None, None)
-    policy = make_policy(env, machine, cfg, q_value=critic if args.assist == "ida" else None, copilot=copilot)
-    learner = make_learner(policy, critic, cfg) if args.assist == "dcsc" else None
+    policy = make_policy(env, machine, cfg, q_value=critic if args.assist == "ida" else None, copilot=copilot,
+                         state_arbiter=state)
+    learner = (make_learner(policy, critic, cfg) if args.assist == "dcsc"
+               else state.learner(policy) if state is not None else None)
     print("arrow keys (or W/A/D): up = main engine, left/right = side engines; Esc quits")
     try:
         summaries = play(env, policy, pilot, args.episodes, seed=args.seed, learner=learner,
-                         rollout_length=int(cfg.protocol.rollout_length), recorder=recorder,
+                         rollout_length=learner.segment_length if state is not None else int(cfg.protocol.rollout_length),
+                         recorder=recorder,
                          exploration_type=ProtocolSettings(seed=cfg.seed, **cfg.protocol).exploration_type)
     finally:
         pilot.close()

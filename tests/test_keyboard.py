@@ -272,7 +272,7 @@ def test_a_key_released_during_the_prompt_is_released():
 
 
 def play_session(machine, *, critic=None, out=None, episodes=1, events=list, exploration_type=ExplorationType.RANDOM,
-                 theta_init=None, ida=False, copilot=None):
+                 theta_init=None, ida=False, copilot=None, state=None):
     clock = FakeClock()
     render_env = gym.make(LUNAR_ID, render_mode="rgb_array")
     screen = RecordingScreen()
@@ -288,11 +288,13 @@ def play_session(machine, *, critic=None, out=None, episodes=1, events=list, exp
     cfg = play_config()
     if theta_init is not None:
         cfg.arbiter.centred.theta_init = theta_init
-    policy = make_policy(env, machine, cfg, q_value=critic if ida else None, copilot=copilot)
-    learner = make_learner(policy, critic, cfg) if critic is not None and not ida else None
+    policy = make_policy(env, machine, cfg, q_value=critic if ida else None, copilot=copilot, state_arbiter=state)
+    learner = (state.learner(policy) if state is not None
+               else make_learner(policy, critic, cfg) if critic is not None and not ida else None)
     recorder = None
     if out is not None:
-        method = "ida" if ida else "reddy" if copilot is not None else "dcsc_centred" if machine is not None else "operator"
+        method = ("ida" if ida else "reddy" if copilot is not None else "dcsc_state" if state is not None
+                  else "dcsc_centred" if machine is not None else "operator")
         recorder = PlayRecorder(out, method, "tester")
     summaries = play(env, policy, pilot, episodes=episodes, learner=learner, rollout_length=5, recorder=recorder,
                      exploration_type=exploration_type)
@@ -387,6 +389,35 @@ def test_play_with_reddys_copilot_hands_it_exactly_the_frames_outside_the_tolera
     trace = pd.read_csv(tmp_path / "study" / "trace.csv")
     assert len(trace) == summaries[0]["steps"] and set(trace["beta"].unique()) <= {0.0, 1.0}
     assert pd.read_csv(tmp_path / "study" / "episodes.csv")["method"].tolist() == ["reddy"]
+
+
+def test_play_with_the_state_dependent_arbiter_fine_tunes_it_and_leaves_the_pretrained_one_alone(tmp_path):
+    import pandas as pd
+
+    from dcsc_torchrl.online import PolicyGradientLearner
+    from dcsc_torchrl.state_arbiter import (
+        PretrainedArbiter,
+        StateDependentArbiter,
+        state_value_network,
+    )
+
+    actor, _ = load_machine(tiny_checkpoint(tmp_path))
+    torch.manual_seed(0)
+    arbiter = StateDependentArbiter(9, 4, hidden=(8,))
+    settings = {"lr": 1e-3, "gamma": 0.99, "gae_lambda": 1.0, "entropy_coeff": 0.0, "critic_coeff": 0.5,
+                "max_grad_norm": 0.5, "segment_length": 5}
+    pretrained = PretrainedArbiter(arbiter, state_value_network(9, (8,)), settings, ("expert",), "machine")
+    before = {k: v.clone() for k, v in arbiter.state_dict().items() if isinstance(v, torch.Tensor)}
+    summaries, _, policy, learner = play_session(machine=actor, out=tmp_path / "study", state=pretrained)
+    assert type(policy["arbiter"]).__name__ == "StateDependentArbiter" and policy["arbiter"] is not arbiter
+    assert isinstance(learner, PolicyGradientLearner) and len(learner.history) >= summaries[0]["steps"] // 5
+    assert all(torch.equal(before[k], v) for k, v in arbiter.state_dict().items() if k in before)
+    assert pd.read_csv(tmp_path / "study" / "episodes.csv")["method"].tolist() == ["dcsc_state"]
+
+
+def test_play_with_an_arbiter_of_another_machine_or_none_says_so(tmp_path, capsys):
+    assert dcsc(["play", "lunarlander", "--assist", "state", "--arbiter", str(tmp_path / "none.pt")]) == 2
+    assert "dcsc arbiter lunarlander" in capsys.readouterr().err
 
 
 def test_play_without_a_copilot_says_how_to_get_one(tmp_path, capsys):

@@ -70,7 +70,8 @@ def test_quick_map_writes_its_table_and_heatmap(tmp_path, monkeypatch):
                  "operators=[surrogate_noisy]"]) == 0
     table = pd.read_csv(out / "map.csv")
     assert set(table["machine"]) == {"blind-500"} and set(table["operator"]) == {"surrogate_noisy"}
-    assert {"operator", "machine", "dcsc_centred", "best_constant", "either", "ida_expert", "reddy"} <= set(table["method"])
+    assert {"operator", "machine", "dcsc_centred", "best_constant", "either", "ida_expert", "reddy",
+            "dcsc_state"} <= set(table["method"])
     assert all(not math.isnan(value) for value in table["delta"])
     text = (out / "map.md").read_text()
     assert "A `--quick` run" in text and "| blind-500 | surrogate_noisy |" in text
@@ -80,6 +81,8 @@ def test_quick_map_writes_its_table_and_heatmap(tmp_path, monkeypatch):
     assert (tmp_path / "runs" / "quick" / "map" / "target-500" / "seed0" / "checkpoint.pt").is_file()
     for name in ("surrogates", "humanlike"):
         assert (tmp_path / "runs" / "quick" / "map" / f"copilot-{name}" / "copilot.pt").is_file()
+        # and the state-dependent arbiters, next to the map's machine, after it was pretrained
+        assert (tmp_path / "runs" / "quick" / "map" / "blind-500" / f"arbiter-{name}" / "arbiter.pt").is_file()
 
 
 def test_the_papers_claims_are_checked_paired_per_scenario():

@@ -76,7 +76,8 @@ def test_the_arbiter_learns_when_on_a_scripted_task():
     arbiter = StateDependentArbiter(1, 2, hidden=(16,))
     policy = shared_policy(arbiter, obs=1, keys=2)
     learner = PolicyGradientLearner(policy, mlp(1, 1, (16,), activation=torch.nn.Tanh), lr=3e-3, gamma=0.99,
-                                    gae_lambda=0.95, entropy_coeff=0.0, critic_coeff=0.5, max_grad_norm=0.5)
+                                    gae_lambda=0.95, entropy_coeff=0.0, critic_coeff=0.5, max_grad_norm=0.5,
+                                    segment_length=4)
     actor = policy.authority_actor()
 
     def batch(n: int = 32, t: int = 4) -> TensorDict:
@@ -155,6 +156,10 @@ def test_dcsc_arbiter_pretrains_next_to_the_machine_and_records_its_pool(pretrai
         arbiter.check_evaluated_next_to("expert", shipped_machine(LUNAR, "blind")[0])
     with pytest.raises(ValueError, match="lunarlander-state-arbiter"):
         load_checkpoint(pretrained / "arbiter.pt", task="lunarlander")  # no machine
+    del data["settings"]["segment_length"]  # a file of an earlier version
+    torch.save(data, pretrained / "old.pt")
+    with pytest.raises(CheckpointError, match=r"lacks the learner's settings \['segment_length'\]"):
+        load_pretrained_arbiter(pretrained / "old.pt", LUNAR)
 
 
 def test_a_cell_runs_dcsc_state_from_the_pretrained_arbiter_and_refuses_its_pool(pretrained, tmp_path, capsys):
