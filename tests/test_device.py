@@ -62,6 +62,13 @@ def test_batched_uav_env_steps_on_the_device(device):
 def test_every_arbiter_blends_on_the_device(device, method):
     cfg = load_config(CONFIGS["uav"].protocol, quick=True)
     env = uav_env_with_operator(device, cfg)
+    if method == "reddy":  # the copilot brings its own machine: its 27 grid points
+        from dcsc_torchrl.copilot import TrainedCopilot
+
+        policy = TrainedCopilot(get_task("uav").make_copilot_network([16]), 0.5, ()).policy(action_spec(device))
+        td = policy.to(device)(env.reset())
+        assert all_on(td, device) and td["beta"].shape == (4, 3)
+        return
     if method == "dcsc_frozen":  # built by the protocol from a learned arbiter
         arbiter = FrozenConfidenceArbiter(make_arbiter("dcsc_centred", 3, theta_init=0.0),
                                           0.5, 0.3)
