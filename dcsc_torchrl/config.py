@@ -165,6 +165,11 @@ LIMITS: dict[str, Range] = {
     "state.calibration_runs": COUNT,
     "state.first_seed": NON_NEGATIVE,
     "state.segment_length": COUNT,
+    "state.betas": UNIT,
+    "state.blend_scenarios": COUNT,
+    "state.critic_updates": COUNT,
+    "state.arbiter_updates": COUNT,
+    "state.batch_size": COUNT,
     "state.hidden": COUNT,
     "state.value_hidden": COUNT,
     "state.spread": POSITIVE,
@@ -196,11 +201,11 @@ NULLABLE: dict[str, Any] = {
 example value: an override of it is checked as one of a key with that value in the yaml would be."""
 
 NON_EMPTY = frozenset({"pretrain.seeds", "operator.presets", "tasks", "operators", "pretrain_seeds", "methods", "pool",
-                       "alpha.grid", "state.pool"})
+                       "alpha.grid", "state.pool", "state.betas"})
 """Lists that need an entry (``null`` passes where it is the default)."""
 
 DISTINCT = frozenset({"pretrain.seeds", "operator.presets", "arbiter.constant_betas", "warmup.blend_betas", "tasks",
-                      "operators", "pretrain_seeds", "methods", "pool", "alpha.grid", "state.pool"})
+                      "operators", "pretrain_seeds", "methods", "pool", "alpha.grid", "state.pool", "state.betas"})
 """Lists of things each run once: a repeated entry is dropped, with a warning (it would count twice)."""
 
 FIXED = frozenset({"task"})

@@ -75,7 +75,7 @@ class OnlineLearner(ABC):
         self.updates_per_batch = int(updates_per_batch)
         self.loss = self._make_loss(policy, critic)
         self.targets = SoftUpdate(self.loss, tau=tau) if self.soft_updated else None
-        self.theta_optim = THETA_OPTIMIZERS[theta_optimizer]([policy["arbiter"].theta], lr=theta_lr)
+        self.theta_optim = THETA_OPTIMIZERS[theta_optimizer](list(policy["arbiter"].parameters()), lr=theta_lr)
         self.critic_optim = torch.optim.Adam(list(self.critic_params.values(True, True)), lr=critic_lr, foreach=True)
         self.history: list[dict[str, Any]] = []
 

@@ -37,15 +37,22 @@ from torch import nn
 from dcsc_torchrl.arbiters import Arbiter, centred_fusion_weight, fusion_weight
 from dcsc_torchrl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from dcsc_torchrl.checks import check_in_range, check_values
-from dcsc_torchrl.networks import mlp
+from dcsc_torchrl.networks import authority_critic, mlp
 
 if TYPE_CHECKING:
-    from dcsc_torchrl.online import PolicyGradientLearner
+    from dcsc_torchrl.online import OnlineLearner, PolicyGradientLearner
     from dcsc_torchrl.policy import SharedPolicyModule
     from dcsc_torchrl.task import Task
 
-LEARNER_SETTINGS = ("lr", "gamma", "gae_lambda", "entropy_coeff", "critic_coeff", "max_grad_norm", "segment_length")
-"""The :class:`~dcsc_torchrl.online.PolicyGradientLearner` keywords a pretrained arbiter keeps for its cell."""
+LEARNER_SETTINGS: dict[str, tuple[str, ...]] = {
+    "authority": ("lr", "gamma", "betas", "blend_scenarios", "critic_updates", "arbiter_updates", "batch_size"),
+    "policy_gradient": ("lr", "gamma", "gae_lambda", "entropy_coeff", "critic_coeff", "max_grad_norm",
+                        "segment_length", "rounds", "scenarios"),
+}
+"""Each algorithm's settings, which a pretrained arbiter keeps for its cell: ``authority``, the
+arbiter against a critic of the authority split ``Q(s, beta)`` fitted on constant blends
+(:class:`~dcsc_torchrl.online.AuthorityOnlineLearner`, the critic held); ``policy_gradient``,
+A2C on the shared policy's own frames (:class:`~dcsc_torchrl.online.PolicyGradientLearner`)."""
 
 STATE_FORMS = ("paper", "centred")
 """The two forms theta_t enters: Eq. 15 as printed, ``sigmoid(theta_t b_t)``, and the centred one."""
@@ -176,12 +183,20 @@ class PretrainedArbiter:
             raise ValueError(f"the state-dependent arbiter was pretrained next to machine {self.machine}, "
                              f"this machine is {fingerprint}: pretrain one next to it (dcsc arbiter)")
 
-    def learner(self, policy: SharedPolicyModule) -> PolicyGradientLearner:
-        """The fine-tuning learner of ``policy`` (whose arbiter is a copy of :attr:`arbiter`), with
-        its own copy of the value critic."""
-        from dcsc_torchrl.online import PolicyGradientLearner
+    def learner(self, policy: SharedPolicyModule, *, copy_critic: bool = True) -> OnlineLearner | PolicyGradientLearner:
+        """The learner of ``policy`` (whose arbiter a cell copies from :attr:`arbiter`) by the
+        settings' ``algorithm``, with its own copy of the critic (``copy_critic``; the
+        pretraining trains :attr:`value_net` itself): ``authority``, the arbiter against the
+        held ``Q(s, beta)``; ``policy_gradient``, A2C with the value critic."""
+        from dcsc_torchrl.online import AuthorityOnlineLearner, PolicyGradientLearner
 
-        return PolicyGradientLearner(policy, copy.deepcopy(self.value_net), **self.settings)
+        critic = copy.deepcopy(self.value_net) if copy_critic else self.value_net
+        settings = self.settings
+        if settings["algorithm"] == "authority":
+            return AuthorityOnlineLearner(policy, critic, theta_lr=settings["lr"], critic_lr=0.0,
+                                          gamma=settings["gamma"], tau=1.0, theta_optimizer="adam")
+        keys = ("lr", "gamma", "gae_lambda", "entropy_coeff", "critic_coeff", "max_grad_norm", "segment_length")
+        return PolicyGradientLearner(policy, critic, **{key: settings[key] for key in keys})
 
 
 def save_pretrained_arbiter(path: str | Path, task: Task, pretrained: PretrainedArbiter,
@@ -189,8 +204,8 @@ def save_pretrained_arbiter(path: str | Path, task: Task, pretrained: Pretrained
     """Writes ``task``'s pretrained arbiter (weights only: the arbiter's and the value critic's
     states, the settings, the pool, the machine's fingerprint), the ``config`` (with the two
     networks' widths as its ``network``) and ``record``."""
-    network = {"hidden": pretrained.arbiter.get_extra_state()["shape"]["hidden"],
-               "value_hidden": [layer.out_features for layer in pretrained.value_net if isinstance(layer, nn.Linear)][:-1]}
+    linears = [layer.out_features for layer in pretrained.value_net.modules() if isinstance(layer, nn.Linear)]
+    network = {"hidden": pretrained.arbiter.get_extra_state()["shape"]["hidden"], "value_hidden": linears[:-1]}
     payload = {"state": {"arbiter": pretrained.arbiter.state_dict(), "value": pretrained.value_net.state_dict()},
                "settings": dict(pretrained.settings), "operators": list(pretrained.operators),
                "machine": pretrained.machine, "config": {**config, "network": network}, **record}
@@ -204,13 +219,14 @@ def load_pretrained_arbiter(path: str | Path, task: Task) -> PretrainedArbiter:
         ValueError: no such file, or a checkpoint of something else (one line).
     """
     data = load_checkpoint(path, task=state_arbiter_task(task), modules=("arbiter", "value"))
-    missing = [key for key in LEARNER_SETTINGS if key not in data.get("settings", {})]
+    settings = data.get("settings", {})
+    missing = [key for key in ("algorithm", *LEARNER_SETTINGS.get(settings.get("algorithm"), ())) if key not in settings]
     if missing:
         raise CheckpointError(f"{path} lacks the learner's settings {missing} (written by another version of "
                               "dcsc-torchrl?): pretrain it again (dcsc arbiter)")
     arbiter = StateDependentArbiter.from_state(data["state"]["arbiter"])
     arbiter.load_state_dict(data["state"]["arbiter"])
-    value_net = state_value_network(arbiter.observation_size, data["config"]["network"]["value_hidden"])
+    value_net = state_arbiter_critic(settings["algorithm"], arbiter, data["config"]["network"]["value_hidden"])
     value_net.load_state_dict(data["state"]["value"])
     return PretrainedArbiter(arbiter, value_net, dict(data["settings"]), tuple(data["operators"]), data["machine"])
 
@@ -223,3 +239,30 @@ def state_arbiter_task(task: Task) -> str:
 def state_value_network(observation_size: int, hidden: Sequence[int]) -> nn.Sequential:
     """``V(s)``, the shared policy's value critic beside the arbiter: an MLP (Tanh) to one value."""
     return mlp(observation_size, 1, hidden, activation=nn.Tanh)
+
+
+def state_arbiter_critic(algorithm: str, arbiter: StateDependentArbiter, hidden: Sequence[int]) -> nn.Module:
+    """The critic beside ``arbiter`` for ``algorithm``: ``Q(s, beta)`` (``authority``; one network on
+    ``(s, beta)``, so its best beta may depend on the state) or ``V(s)`` (``policy_gradient``)."""
+    if algorithm == "authority":
+        return authority_critic(arbiter.observation_size, arbiter.dims, hidden, separable=False)
+    return state_value_network(arbiter.observation_size, hidden)
+
+
+def checked_learner_settings(learner: Mapping[str, Any]) -> dict[str, Any]:
+    """``learner``'s ``algorithm`` and that algorithm's :data:`LEARNER_SETTINGS`, typed; a ValueError
+    naming an unknown algorithm or a missing setting."""
+    algorithm = learner.get("algorithm")
+    if algorithm not in LEARNER_SETTINGS:
+        raise ValueError(f"algorithm must be one of {', '.join(LEARNER_SETTINGS)}, got {algorithm!r}")
+    missing = [key for key in LEARNER_SETTINGS[algorithm] if key not in learner]
+    if missing:
+        raise ValueError(f"the {algorithm} algorithm needs the settings {missing}")
+    counts = {"segment_length", "rounds", "scenarios", "blend_scenarios", "critic_updates", "arbiter_updates",
+              "batch_size"}
+    settings: dict[str, Any] = {"algorithm": algorithm}
+    for key in LEARNER_SETTINGS[algorithm]:
+        value = learner[key]
+        settings[key] = ([float(v) for v in value] if key == "betas" else int(value) if key in counts
+                         else float(value))
+    return settings

@@ -2,8 +2,7 @@
 
 The machine is the one ``dcsc run`` would fly with (``pretrain.*`` of the task's protocol
 yaml: the first of ``pretrain.seeds``, pretrained first when missing, or the shipped one);
-the arbiter and the shared policy's value critic learn against the operators of
-``state.pool`` in turn (:func:`~dcsc_torchrl.arbiter_pretraining.pretrain_state_arbiter`), on
+the arbiter and its critic learn against the operators of ``state.pool`` (``state.algorithm``) (:func:`~dcsc_torchrl.arbiter_pretraining.pretrain_state_arbiter`), on
 development scenarios from ``state.first_seed``. The file it writes, ``arbiter.pt``, records the
 pool and the machine: ``dcsc run ... --methods dcsc_state state.arbiters=[...]`` refuses it next
 to an operator of the pool or another machine.
@@ -11,8 +10,9 @@ to an operator of the pool or another machine.
     dcsc arbiter TASK [--quick] [--out DIR] [key=value ...]
 
 Outputs in ``--out`` (default ``runs/arbiter_<task>``): ``arbiter.pt``, ``pretraining.csv``
-(one row per play: operator, round, success, mean beta, updates) and ``fig_state_beta.png``
-(beta over the state on the last round's frames).
+(one row per run: operator, beta or round, frames, success, mean beta) and
+``fig_state_beta.png`` (the pretrained arbiter's beta over the state, on the frames it learned
+from last).
 """
 
 from __future__ import annotations
@@ -37,11 +37,13 @@ from dcsc_torchrl.tasks import Task
 
 
 def arbiter_config(task: Task, overrides: Sequence[str] = (), *, quick: bool = False) -> DictConfig:
-    """The task's protocol config with ``overrides``, checked whole, its ``state.pool`` named presets."""
+    """The task's protocol config with ``overrides``, checked whole: ``state.pool`` names presets,
+    ``state.algorithm`` an algorithm, ``state.betas`` are in [0, 1]."""
     cfg = task_config(task, overrides, quick=quick)
     if "state" not in cfg:
         raise ValueError(f"task {task.name} has no state-dependent arbiter (its protocol yaml has no state group)")
     check_names("state.pool", "operator preset", list(cfg.state.pool), list(PRESETS))
+    check_names("state.algorithm", "algorithm", [cfg.state.algorithm], list(LEARNER_SETTINGS))
     return cfg
 
 
@@ -54,20 +56,20 @@ def pretrain(task: Task, cfg: DictConfig, out: Path, *, quick: bool = False) -> 
     machine_net, _ = pretrained_machine(task, cfg, seed, quick=quick)
     settings = cell_settings(cfg)
     state = cfg.state
+    learner = {"algorithm": state.algorithm, "gamma": cfg.online.gamma,
+               **{key: state[key] for key in LEARNER_SETTINGS[state.algorithm] if key != "gamma"}}
     pretrained, rows, frames = pretrain_state_arbiter(
         task, machine_net, {name: task.make_operator(name) for name in state.pool}, human=settings["human"],
         machine=settings["machine"], arbiter=settings["arbiter"], protocol=settings["protocol"],
-        rounds=state.rounds, scenarios=state.scenarios, calibration_runs=state.calibration_runs,
-        first_seed=state.first_seed, hidden=list(state.hidden), value_hidden=list(state.value_hidden),
-        spread=state.spread, learner={**{key: state[key] for key in LEARNER_SETTINGS if key != "gamma"},
-                                      "gamma": cfg.online.gamma},
-        seed=seed, progress=lambda line: print(f"  arbiter: {line}", flush=True))
+        calibration_runs=state.calibration_runs, first_seed=state.first_seed, hidden=list(state.hidden),
+        value_hidden=list(state.value_hidden), spread=state.spread, learner=learner, seed=seed,
+        progress=lambda line: print(f"  arbiter: {line}", flush=True))
     out.mkdir(parents=True, exist_ok=True)
     table = pd.DataFrame(rows)
     write_atomic(out / "pretraining.csv", lambda file: table.to_csv(file, index=False))
     plot_state_beta(frames, task, out / "fig_state_beta.png",
                     f"{task.title}: the state-dependent arbiter's β after pretraining\n"
-                    f"(the last round's frames; pool {', '.join(state.pool)})")
+                    f"(the frames it learned from last; pool {', '.join(state.pool)})")
     return save_pretrained_arbiter(out / "arbiter.pt", task, pretrained, to_plain(cfg), machine_seed=seed,
                                    frames=int(table["frames"].sum()), seconds=time.perf_counter() - start)
 

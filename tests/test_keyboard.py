@@ -404,8 +404,8 @@ def test_play_with_the_state_dependent_arbiter_fine_tunes_it_and_leaves_the_pret
     actor, _ = load_machine(tiny_checkpoint(tmp_path))
     torch.manual_seed(0)
     arbiter = StateDependentArbiter(9, 4, hidden=(8,))
-    settings = {"lr": 1e-3, "gamma": 0.99, "gae_lambda": 1.0, "entropy_coeff": 0.0, "critic_coeff": 0.5,
-                "max_grad_norm": 0.5, "segment_length": 5}
+    settings = {"algorithm": "policy_gradient", "lr": 1e-3, "gamma": 0.99, "gae_lambda": 1.0, "entropy_coeff": 0.0,
+                "critic_coeff": 0.5, "max_grad_norm": 0.5, "segment_length": 5}
     pretrained = PretrainedArbiter(arbiter, state_value_network(9, (8,)), settings, ("expert",), "machine")
     before = {k: v.clone() for k, v in arbiter.state_dict().items() if isinstance(v, torch.Tensor)}
     summaries, _, policy, learner = play_session(machine=actor, out=tmp_path / "study", state=pretrained)

@@ -4,6 +4,8 @@ cell refuses next to an operator of its pool or another machine."""
 
 from __future__ import annotations
 
+import copy
+
 import pandas as pd
 import pytest
 import torch
@@ -147,6 +149,7 @@ def test_dcsc_arbiter_pretrains_next_to_the_machine_and_records_its_pool(pretrai
     assert arbiter.operators == ("surrogate_noisy",) and arbiter.machine == machine_fingerprint(machine)
     rows = pd.read_csv(pretrained / "pretraining.csv")
     assert set(rows["operator"]) == {"surrogate_noisy"} and (rows["first_seed"] >= 40_000).all()
+    assert list(rows["beta"]) == [0.0, 1.0]  # the authority algorithm: the pool's constant blends
     assert (pretrained / "fig_state_beta.png").stat().st_size > 0
     data = torch.load(pretrained / "arbiter.pt", weights_only=True)
     assert data["seconds"] > 0 and data["frames"] > 0
@@ -156,9 +159,9 @@ def test_dcsc_arbiter_pretrains_next_to_the_machine_and_records_its_pool(pretrai
         arbiter.check_evaluated_next_to("expert", shipped_machine(LUNAR, "blind")[0])
     with pytest.raises(ValueError, match="lunarlander-state-arbiter"):
         load_checkpoint(pretrained / "arbiter.pt", task="lunarlander")  # no machine
-    del data["settings"]["segment_length"]  # a file of an earlier version
+    del data["settings"]["critic_updates"]  # a file of an earlier version
     torch.save(data, pretrained / "old.pt")
-    with pytest.raises(CheckpointError, match=r"lacks the learner's settings \['segment_length'\]"):
+    with pytest.raises(CheckpointError, match=r"lacks the learner's settings \['critic_updates'\]"):
         load_pretrained_arbiter(pretrained / "old.pt", LUNAR)
 
 
@@ -175,11 +178,30 @@ def test_a_cell_runs_dcsc_state_from_the_pretrained_arbiter_and_refuses_its_pool
     assert set(theta["method"]) == {"dcsc_state"} and len(theta) > 0
 
 
+def test_the_policy_gradient_algorithm_pretrains_and_fine_tunes_in_the_cell(tmp_path):
+    out = tmp_path / "arbiter"
+    assert main(["arbiter", "lunarlander", "--quick", "--out", str(out), "pretrain.shipped=true",
+                 "state.algorithm=policy_gradient", "state.segment_length=20"]) == 0
+    pretrained = load_pretrained_arbiter(out / "arbiter.pt", LUNAR)
+    assert pretrained.settings["algorithm"] == "policy_gradient" and pretrained.settings["segment_length"] == 20
+    rows = pd.read_csv(out / "pretraining.csv")
+    assert list(rows["round"]) == [0] and rows["frames"].iloc[0] > 0
+    learner = pretrained.learner(shared_policy(copy.deepcopy(pretrained.arbiter)))
+    assert isinstance(learner, PolicyGradientLearner) and learner.segment_length == 20
+    assert main(["run", "lunarlander", "--quick", "--methods", "operator", "dcsc_state", "--operators", "expert",
+                 "--out", str(tmp_path), "pretrain.shipped=true", "pretrain.seeds=[0]",
+                 f"state.arbiters=[{out / 'arbiter.pt'}]"]) == 0
+    theta = pd.read_csv(tmp_path / "lunarlander" / "theta.csv")
+    assert {"loss_objective", "loss_critic"} <= set(theta.columns) and len(theta) > 0
+
+
 @pytest.mark.parametrize(("argv", "line"), [
     (["run", "lunarlander", "--quick", "--methods", "dcsc_state"], "method dcsc_state needs state.arbiters"),
     (["run", "uav", "--quick", "--methods", "dcsc_state"], "task uav does not define method(s) dcsc_state"),
     (["arbiter", "lunarlander", "--quick", "state.pool=[nobody]"], "state.pool: unknown operator preset"),
     (["arbiter", "lunarlander", "--quick", "state.lr=0"], "state.lr: expected a value > 0, got 0"),
+    (["arbiter", "lunarlander", "--quick", "state.algorithm=sarsa"], "state.algorithm: unknown algorithm 'sarsa'"),
+    (["arbiter", "lunarlander", "--quick", "state.betas=[0.0,1.5]"], "state.betas: expected a value in [0, 1]"),
 ])
 def test_bad_state_arbiter_settings_are_refused_at_the_door(argv, line, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
