@@ -16,7 +16,8 @@ copilots of ``copilots`` (``dcsc copilot``, trained into ``{pretrain_dir}/copilo
 when missing; each cell takes the first not trained with its operator), ``dcsc_state`` the
 arbiters of ``arbiters`` (``dcsc arbiter``, pretrained next to every selected machine into
 ``{pretrain_dir}/<machine>/arbiter-<name>/``, the machines pretrained first; each cell takes
-the one of its machine whose pool lacks its operator).
+the one of its machine whose pool lacks its operator; ``arbiters_leave_one_out``: one per
+operator, pretrained with all the others).
 """
 
 from __future__ import annotations
@@ -64,6 +65,9 @@ def map_config(overrides: Sequence[str] = (), *, quick: bool = False) -> DictCon
     for group in ("copilots", "arbiters"):
         for name, pool in cfg[group].items():
             check_names(f"{group}.{name}", "operator preset", list(pool), list(PRESETS))
+    if "dcsc_state" in cfg.methods and cfg.arbiters_leave_one_out and len(cfg.operators) < 2:
+        raise ConfigError(f"arbiters_leave_one_out: an arbiter pretrained without the cell's operator needs another "
+                          f"operator in the map, got operators={list(cfg.operators)}")
     return cfg
 
 
@@ -87,6 +91,14 @@ def _pretrain_arbiter(task: str, overrides: list[str], pool: list[str], folder: 
 
     print(f"map: pretraining arbiter {folder.parent.name}/{folder.name} ({', '.join(pool)})", flush=True)
     main(get_task(task), [*overrides, f"state.pool=[{','.join(pool)}]"], quick=quick, out=folder)
+
+
+def arbiter_pools(cfg: DictConfig) -> dict[str, list[str]]:
+    """``dcsc_state``'s pretraining pools by name: ``arbiters``, or with ``arbiters_leave_one_out``
+    one per operator of the map, every other operator of the map (``without-<operator>``)."""
+    if cfg.arbiters_leave_one_out:
+        return {f"without-{left}": [op for op in cfg.operators if op != left] for left in cfg.operators}
+    return {name: list(pool) for name, pool in cfg.arbiters.items()}
 
 
 def _run_jobs(jobs: Sequence[partial], workers: int) -> None:
@@ -126,7 +138,7 @@ def ready_assistants(cfg: DictConfig, *, quick: bool, workers: int = 1) -> list[
     if "dcsc_state" in cfg.methods:  # next to the machines, which exist now
         jobs, paths = [], []
         for machine in cfg.selected:
-            for name, pool in cfg.arbiters.items():
+            for name, pool in arbiter_pools(cfg).items():
                 folder = (Path(cfg.pretrain_dir) / machine / f"arbiter-{name}").resolve()
                 if not (folder / "arbiter.pt").is_file():
                     jobs.append(partial(_pretrain_arbiter, cfg.task, machine_overrides(cfg, machine), list(pool),

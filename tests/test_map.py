@@ -85,6 +85,21 @@ def test_quick_map_writes_its_table_and_heatmap(tmp_path, monkeypatch):
         assert (tmp_path / "runs" / "quick" / "map" / "blind-500" / f"arbiter-{name}" / "arbiter.pt").is_file()
 
 
+def test_leave_one_out_pretrains_one_arbiter_per_operator_without_it(capsys):
+    from dcsc_torchrl.recipes.map import arbiter_pools, map_config
+
+    cfg = map_config(["operators=[expert,noisy,surrogate_laggy]"])
+    assert cfg.arbiters_leave_one_out and "dcsc_state" not in cfg.methods  # named to run
+    assert arbiter_pools(cfg) == {"without-expert": ["noisy", "surrogate_laggy"],
+                                  "without-noisy": ["expert", "surrogate_laggy"],
+                                  "without-surrogate_laggy": ["expert", "noisy"]}
+    assert arbiter_pools(map_config(["arbiters_leave_one_out=false"]))["surrogates"] == [
+        "surrogate_expert", "surrogate_noisy", "surrogate_laggy"]
+    assert main(["map", "operators=[expert]", "methods=[operator,dcsc_state]"]) == 2
+    assert "arbiters_leave_one_out: an arbiter pretrained without the cell's operator needs another operator" in (
+        capsys.readouterr().err)
+
+
 def test_the_papers_claims_are_checked_paired_per_scenario():
     def rows(method, success, steps, ret):
         return [{"machine": "m", "operator": "o", "pretrain_seed": 0, "phase": "validation", "seed": seed,
