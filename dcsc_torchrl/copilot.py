@@ -94,19 +94,29 @@ class CopilotQNetwork(nn.Module):
         return self.q(torch.cat([self.masked(observation), pilot_action.to(observation.dtype)], -1))
 
 
+def action_distances(actions: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """The squared Euclidean distance from ``action [*batch, D]`` to each of ``actions [|A|, D]``, ``[*batch, |A|]``."""
+    return (action.to(actions.dtype).unsqueeze(-2) - actions).square().sum(-1)
+
+
 def nearest_action(actions: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
     """The index of the action of ``actions [|A|, D]`` nearest ``action [*batch, D]`` (Euclidean;
     the first of tied ones), ``[*batch, 1]``: a one-hot key's own index."""
-    distances = (action.to(actions.dtype).unsqueeze(-2) - actions).square().sum(-1)
-    return distances.argmin(-1, keepdim=True)
+    return action_distances(actions, action).argmin(-1, keepdim=True)
+
+
+def within_tolerance(q_values: torch.Tensor, alpha: float) -> torch.Tensor:
+    """Reddy et al.'s feasible set: ``Q'(s, a) >= (1 - alpha) max_a Q'(s, a)`` with
+    ``Q' = Q - min_a Q``, one bool per action."""
+    shifted = q_values - q_values.min(-1, keepdim=True).values
+    return shifted >= (1.0 - alpha) * shifted.max(-1, keepdim=True).values
 
 
 def keeps_pilot(q_values: torch.Tensor, pilot_choice: torch.Tensor, alpha: float) -> torch.Tensor:
     """Reddy et al.'s tolerance rule: whether the pilot's action (its index ``pilot_choice``
-    ``[*batch, 1]`` in the copilot's set) is within ``alpha`` of the best,
-    ``Q'(s, a_p) >= (1 - alpha) max_a Q'(s, a)`` with ``Q' = Q - min_a Q``; ``[*batch, 1]`` bools."""
-    shifted = q_values - q_values.min(-1, keepdim=True).values
-    return shifted.gather(-1, pilot_choice) >= (1.0 - alpha) * shifted.max(-1, keepdim=True).values
+    ``[*batch, 1]`` in the copilot's set) is within ``alpha`` of the best
+    (:func:`within_tolerance`); ``[*batch, 1]`` bools."""
+    return within_tolerance(q_values, alpha).gather(-1, pilot_choice)
 
 
 def tolerant_choice(q_values: torch.Tensor, actions: torch.Tensor, pilot_action: torch.Tensor,
@@ -117,10 +127,9 @@ def tolerant_choice(q_values: torch.Tensor, actions: torch.Tensor, pilot_action:
     own best; elsewhere the action within the tolerance nearest the pilot's, ties broken by
     the larger Q (4 keys: every other key is as near, so the copilot's best key).
     """
-    kept = keeps_pilot(q_values, nearest_action(actions, pilot_action), alpha)
-    shifted = q_values - q_values.min(-1, keepdim=True).values
-    feasible = shifted >= (1.0 - alpha) * shifted.max(-1, keepdim=True).values
-    distances = (pilot_action.to(actions.dtype).unsqueeze(-2) - actions).square().sum(-1)
+    feasible = within_tolerance(q_values, alpha)
+    distances = action_distances(actions, pilot_action)
+    kept = feasible.gather(-1, distances.argmin(-1, keepdim=True))
     distances = distances.masked_fill(~feasible, torch.inf)
     nearest = distances == distances.min(-1, keepdim=True).values
     yielding = q_values.masked_fill(~nearest, -torch.inf).argmax(-1, keepdim=True)

@@ -102,16 +102,17 @@ class StateDependentArbiter(Arbiter):
 
     def features(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``[s, b_h, b_m, a_h, a_m]`` per frame, what ``g_psi`` reads."""
-        machine_confidence, human_confidence, *keys = self.in_keys
-        values = [tensordict.get(key) for key in (keys[0], human_confidence, machine_confidence, keys[1], keys[2])]
+        machine_confidence, human_confidence, observation, human, machine = self.in_keys
+        keys = (observation, human_confidence, machine_confidence, human, machine)
         widths = (self.observation_size, 1, 1, self.action_size, self.action_size)
-        for key, value, width in zip((keys[0], human_confidence, machine_confidence, keys[1], keys[2]), values, widths,
-                                     strict=True):
+        values = []
+        for key, width in zip(keys, widths, strict=True):
+            value = tensordict.get(key)
             if value.shape[-1] != width:
                 raise ValueError(f"{type(self).__name__} reads {key!r} with {width} values per frame, "
                                  f"got shape {tuple(value.shape)}")
-        dtype = values[0].dtype
-        return torch.cat([value.to(dtype) for value in values], -1)
+            values.append(value)
+        return torch.cat([value.to(values[0].dtype) for value in values], -1)
 
     def thetas(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``theta_t [*batch, dims]``: the bias plus the frame's bounded move."""
@@ -195,8 +196,9 @@ class PretrainedArbiter:
         if settings["algorithm"] == "authority":
             return AuthorityOnlineLearner(policy, critic, theta_lr=settings["lr"], critic_lr=0.0,
                                           gamma=settings["gamma"], tau=1.0, theta_optimizer="adam")
-        keys = ("lr", "gamma", "gae_lambda", "entropy_coeff", "critic_coeff", "max_grad_norm", "segment_length")
-        return PolicyGradientLearner(policy, critic, **{key: settings[key] for key in keys})
+        pretraining_only = ("rounds", "scenarios")
+        return PolicyGradientLearner(policy, critic, **{key: settings[key] for key in LEARNER_SETTINGS["policy_gradient"]
+                                                        if key not in pretraining_only})
 
 
 def save_pretrained_arbiter(path: str | Path, task: Task, pretrained: PretrainedArbiter,
