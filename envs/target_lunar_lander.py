@@ -30,6 +30,7 @@ from typing import Any
 
 import Box2D
 import gymnasium as gym
+import numba
 import numpy as np
 from Box2D.b2 import edgeShape, fixtureDef, polygonShape, revoluteJointDef
 from gymnasium import spaces
@@ -56,6 +57,7 @@ __all__ = [
     "STAND_FRAMES",
     "TargetLunarLander",
     "pad_x_of_chunk",
+    "heuristic_key",
     "target_heuristic",
 ]
 
@@ -338,6 +340,35 @@ def _info(
     }
 
 
+@numba.njit(cache=True)
+def heuristic_key(obs: np.ndarray) -> int:
+    """:func:`target_heuristic`'s key for one observation row (float64, 9 values), compiled
+    (numba) so the simulated pilot's planning loops can call it per frame."""
+    dx = obs[0] - obs[8]
+    angle_targ = min(max(dx * 0.5 + obs[2] * 1.0, -0.4), 0.4)
+    hover_targ = 0.55 * abs(dx) + (_APPROACH_HEIGHT if abs(dx) > _ABOVE_PAD else 0.0)
+    angle_todo = (angle_targ - obs[4]) * 0.5 - obs[5] * 1.0
+    hover_todo = (hover_targ - obs[1]) * 0.5 - obs[3] * 0.5
+    if obs[6] != 0 or obs[7] != 0:  # touching: only cut the fall
+        angle_todo = 0.0
+        hover_todo = -obs[3] * 0.5
+    if hover_todo > abs(angle_todo) and hover_todo > 0.05:
+        return 2
+    if angle_todo < -0.05:
+        return 3
+    if angle_todo > 0.05:
+        return 1
+    return 0
+
+
+@numba.njit(cache=True)
+def _heuristic_keys(obs: np.ndarray) -> np.ndarray:
+    keys = np.empty(obs.shape[0], dtype=np.int64)
+    for row in range(obs.shape[0]):
+        keys[row] = heuristic_key(obs[row])
+    return keys
+
+
 def target_heuristic(obs: np.ndarray) -> int | np.ndarray:
     """Hand-written pilot that lands on the pad at ``obs[..., 8]`` (discrete actions).
 
@@ -358,21 +389,5 @@ def target_heuristic(obs: np.ndarray) -> int | np.ndarray:
         for one observation, an int64 array of the batch's shape for a batch.
     """
     obs = np.asarray(obs, dtype=np.float64)
-    dx = obs[..., 0] - obs[..., 8]
-    angle_targ = np.clip(dx * 0.5 + obs[..., 2] * 1.0, -0.4, 0.4)
-    hover_targ = 0.55 * np.abs(dx) + np.where(np.abs(dx) > _ABOVE_PAD, _APPROACH_HEIGHT, 0.0)
-    angle_todo = (angle_targ - obs[..., 4]) * 0.5 - obs[..., 5] * 1.0
-    hover_todo = (hover_targ - obs[..., 1]) * 0.5 - obs[..., 3] * 0.5
-    touching = (obs[..., 6] != 0) | (obs[..., 7] != 0)
-    angle_todo = np.where(touching, 0.0, angle_todo)
-    hover_todo = np.where(touching, -obs[..., 3] * 0.5, hover_todo)
-    action = np.select(
-        [
-            (hover_todo > np.abs(angle_todo)) & (hover_todo > 0.05),
-            angle_todo < -0.05,
-            angle_todo > 0.05,
-        ],
-        [2, 3, 1],
-        default=0,
-    ).astype(np.int64)
-    return int(action) if action.ndim == 0 else action
+    keys = _heuristic_keys(np.ascontiguousarray(obs.reshape(-1, obs.shape[-1]))).reshape(obs.shape[:-1])
+    return int(keys) if keys.ndim == 0 else keys

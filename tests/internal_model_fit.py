@@ -34,7 +34,7 @@ def fit_internal_model(frames: int = 20_000, seed: int = 1_000_000) -> np.ndarra
         next_obs, _, terminated, truncated, _ = env.step(key)
         if not (obs[6] or obs[7] or next_obs[6] or next_obs[7] or terminated):
             features[key].append(_features(obs))
-            changes[key].append(next_obs[VELOCITIES] - obs[VELOCITIES])
+            changes[key].append(next_obs[list(VELOCITIES)] - obs[list(VELOCITIES)])
             kept += 1
         obs = next_obs
         if terminated or truncated:

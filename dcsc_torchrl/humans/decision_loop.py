@@ -18,6 +18,31 @@ from dcsc_torchrl.humans.traits import MAX_PERCEPTION_DELAY, PRESETS, OperatorTr
 _Operator = TypeVar("_Operator", bound="SimulatedHuman")
 
 
+@dataclasses.dataclass
+class _LoopState:
+    """Every env's place in its decision loop, ``[N]`` tensors (``plan`` ``[N, decision_period]``,
+    ``issued`` ``[N, memory_frames]``, each ``seen`` entry ``[N, memory_frames, ...]``)."""
+
+    choice: torch.Tensor
+    """The key (choice) pressed now."""
+    plan: torch.Tensor
+    """The choices of the current decision interval, one per frame."""
+    since: torch.Tensor
+    """Frames since the last decision."""
+    issued: torch.Tensor
+    """Ring of the choices made on the remembered frames."""
+    rt: torch.Tensor
+    """The last decision's reaction time (s)."""
+    wait: torch.Tensor
+    """Frames until the next decision."""
+    age: torch.Tensor
+    """Frames since the episode's start."""
+    slot: torch.Tensor
+    """Where the current frame sits in the rings."""
+    seen: dict[str, torch.Tensor]
+    """Ring of the frames seen, per env key."""
+
+
 class SimulatedHuman(ABC):
     """The decision loop of a simulated operator (a :class:`HumanOperator`).
 
@@ -67,7 +92,7 @@ class SimulatedHuman(ABC):
         self.traits = traits
         self.frame_seconds = float(frame_seconds)
         self.streams: EnvStreams | None = None  # seeded by reset, or at the first call
-        self._state: TensorDict | None = None
+        self._state: _LoopState | None = None
 
     @classmethod
     def from_preset(cls: type[_Operator], name: str, **kwargs: Any) -> _Operator:
@@ -120,43 +145,42 @@ class SimulatedHuman(ABC):
             return 1
         return math.ceil(MAX_PERCEPTION_DELAY / self.frame_seconds) + 1
 
-    def _fresh_state(self, frame: TensorDictBase) -> TensorDict:
-        n_envs = frame.batch_size[0]
-        return TensorDict(
-            {
-                "choice": torch.zeros(n_envs, dtype=torch.int64),
-                "plan": torch.zeros(n_envs, self.decision_period, dtype=torch.int64),
-                "since": torch.zeros(n_envs, dtype=torch.int64),
-                "issued": torch.zeros(n_envs, self.memory_frames, dtype=torch.int64),
-                "rt": torch.zeros(n_envs),
-                "wait": torch.zeros(n_envs, dtype=torch.int64),
-                "age": torch.zeros(n_envs, dtype=torch.int64),
-                "slot": torch.zeros(n_envs, dtype=torch.int64),  # where the env's current frame sits in the ring
-                "seen": frame.unsqueeze(1).expand(n_envs, self.memory_frames).clone(),
-            },
-            [n_envs],
-            device=frame.device,
+    def _fresh_state(self, frame: dict[str, torch.Tensor], device: torch.device | None) -> _LoopState:
+        n_envs = next(iter(frame.values())).shape[0]
+
+        def zeros(*shape: int, dtype: torch.dtype = torch.int64) -> torch.Tensor:
+            return torch.zeros(n_envs, *shape, dtype=dtype, device=device)
+
+        return _LoopState(
+            choice=zeros(), plan=zeros(self.decision_period), since=zeros(), issued=zeros(self.memory_frames),
+            rt=zeros(dtype=torch.get_default_dtype()), wait=zeros(), age=zeros(), slot=zeros(),
+            seen={key: value.unsqueeze(1).expand(n_envs, self.memory_frames, *value.shape[1:]).clone()
+                  for key, value in frame.items()},
         )
 
-    def _remember(self, frame: TensorDictBase, restart: torch.Tensor, active: torch.Tensor) -> None:
+    def _remember(self, frame: dict[str, torch.Tensor], restart: torch.Tensor, active: torch.Tensor) -> None:
         """Stores the current frame of the ``active`` envs in their ring of past frames; counts
         their frames since reset."""
         state = self._state
-        state["slot"] = torch.where(active, (state["slot"] + 1) % self.memory_frames, state["slot"])
+        state.slot = torch.where(active, (state.slot + 1) % self.memory_frames, state.slot)
         rows = active.nonzero().squeeze(-1)
-        state["seen"][rows, state["slot"][rows]] = frame[rows]
-        state["age"] = torch.where(restart, 0, state["age"] + active.long())
+        slots = state.slot[rows]
+        for key, value in frame.items():
+            state.seen[key][rows, slots] = value[rows]
+        state.age = torch.where(restart, 0, state.age + active.long())
 
     def _perceived(self, rows: torch.Tensor, rt: torch.Tensor) -> TensorDictBase:
         """What the deciding envs ``rows`` saw one RT ago, carried forward by :meth:`anticipate`."""
         state = self._state
         delay = torch.round(rt / self.frame_seconds).long()
-        delay = torch.minimum(delay.clamp_max(self.memory_frames - 1), state["age"][rows])
-        slots = (state["slot"][rows] - delay) % self.memory_frames
+        delay = torch.minimum(delay.clamp_max(self.memory_frames - 1), state.age[rows])
+        slots = (state.slot[rows] - delay) % self.memory_frames
         since = torch.arange(int(delay.max()), device=delay.device)
         issued_slots = (slots.unsqueeze(-1) + since) % self.memory_frames
-        issued = state["issued"][rows.unsqueeze(-1), issued_slots]
-        return self.anticipate(state["seen"][rows, slots], issued, delay)
+        issued = state.issued[rows.unsqueeze(-1), issued_slots]
+        seen = TensorDict({key: value[rows, slots] for key, value in state.seen.items()}, [len(rows)],
+                          device=rows.device)
+        return self.anticipate(seen, issued, delay)
 
     def anticipate(
         self, perceived: TensorDictBase, issued: torch.Tensor, delay: torch.Tensor
@@ -191,53 +215,59 @@ class SimulatedHuman(ABC):
         missing = [key for key in (*self.in_keys, "is_init") if key not in tensordict.keys()]
         if missing:
             raise KeyError(f"{type(self).__name__} reads {missing}, which the env did not write")
-        flat = tensordict.select(*self.in_keys, "is_init").reshape(-1)
-        n_envs, device = flat.batch_size[0], tensordict.device
-        restart = flat.get("is_init").reshape(n_envs)
-        frame = flat.select(*self.in_keys)
+        n_envs, device = batch.numel(), tensordict.device
+        n_batch_dims = len(batch)
+
+        def flat(key: str) -> torch.Tensor:
+            value = tensordict.get(key)
+            return value.reshape(n_envs, *value.shape[n_batch_dims:])
+
+        restart = flat("is_init").reshape(n_envs)
+        frame = {key: flat(key) for key in self.in_keys}
         if self.streams is None:
             self.reset(None)
         stepped = tensordict.get("_step", None)  # TorchRL's partial steps: the others stand still
         active = torch.ones_like(restart) if stepped is None else stepped.reshape(n_envs) | restart
-        if self._state is None or self._state.batch_size[0] != n_envs:
-            self._state = self._fresh_state(frame)
+        if self._state is None or self._state.choice.shape[0] != n_envs:
+            self._state = self._fresh_state(frame, device)
             restart = active = torch.ones_like(restart)
         state = self._state
         self._remember(frame, restart, active)
         u = self.streams.uniform(torch.Size([n_envs]), device, active)
 
-        wait = torch.where(restart, 0, state["wait"])
+        wait = torch.where(restart, 0, state.wait)
         decide = (wait <= 0) & active
         if decide.any():
             rows = decide.nonzero().squeeze(-1)
             u_rows = u[rows]
             period = self.decision_period
-            rt = ex_gaussian_rt(self.traits, self.workload(frame[rows]), u_rows[:, 3:])
+            now = TensorDict({key: value[rows] for key, value in frame.items()}, [len(rows)], device=device)
+            rt = ex_gaussian_rt(self.traits, self.workload(now), u_rows[:, 3:])
             random_choice = (u_rows[:, 2] * self.n_choices).long().clamp_max(self.n_choices - 1)
             planned = self.plan(self._perceived(rows, rt))
             if planned.dim() == 1:
                 planned = planned.unsqueeze(-1).expand(-1, period)
             new = torch.where((u_rows[:, 1] < self.traits.eps).unsqueeze(-1), random_choice.unsqueeze(-1), planned)
             lagged = (u_rows[:, 0] < self.traits.lag) & ~restart[rows]
-            held = state["choice"][rows].unsqueeze(-1).expand(-1, period)
-            state["plan"][rows] = torch.where(lagged.unsqueeze(-1), held, new)
-            state["since"][rows] = 0
-            state["rt"][rows] = rt
+            held = state.choice[rows].unsqueeze(-1).expand(-1, period)
+            state.plan[rows] = torch.where(lagged.unsqueeze(-1), held, new)
+            state.since[rows] = 0
+            state.rt[rows] = rt.to(state.rt.dtype)
             wait[rows] = period
             if self.traits.lapses:
                 excess = (rt - self.traits.lapse_threshold).clamp_min(0.0)
                 wait[rows] += torch.round(excess / self.frame_seconds).long()
-        step = state["since"].clamp_max(self.decision_period - 1).unsqueeze(-1)
-        choice = torch.where(active, state["plan"].gather(-1, step).squeeze(-1), state["choice"])
-        state["choice"] = choice
-        state["issued"].scatter_(1, state["slot"].unsqueeze(-1), choice.unsqueeze(-1))
-        state["since"] = state["since"] + active.long()
-        state["wait"] = wait - active.long()
+        step = state.since.clamp_max(self.decision_period - 1).unsqueeze(-1)
+        choice = torch.where(active, state.plan.gather(-1, step).squeeze(-1), state.choice)
+        state.choice = choice
+        state.issued.scatter_(1, state.slot.unsqueeze(-1), choice.unsqueeze(-1))
+        state.since = state.since + active.long()
+        state.wait = wait - active.long()
 
         return TensorDict(
             {
                 "human_action": self.action(choice).reshape(*batch, -1),
-                "human_rt": state["rt"].reshape(*batch, 1).clone(),
+                "human_rt": state.rt.reshape(*batch, 1).clone(),
                 "human_decided": decide.reshape(*batch, 1),
             },
             batch,

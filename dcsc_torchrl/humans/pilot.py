@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 import torch
 from gymnasium.envs.box2d.lunar_lander import FPS
 from tensordict import TensorDictBase
 
-from dcsc_torchrl.envs.target_lunar_lander import target_heuristic
+from dcsc_torchrl.envs.target_lunar_lander import heuristic_key, target_heuristic
 from dcsc_torchrl.humans.decision_loop import SimulatedHuman
 from dcsc_torchrl.humans.traits import PRESETS, OperatorTraits
 
@@ -23,7 +26,7 @@ per second in gymnasium's LunarLander units (x: ``vx (W/2) / FPS`` against ``x /
 with W/2 = 10 m gives 50 / 10 / 10 = 0.5; y: 50 / 6.67 / 6.67 = 1.125; the angle: the
 angular velocity is reported as ``20 omega / FPS``, so 50 / 20 = 2.5)."""
 
-VELOCITIES = [2, 3, 5]
+VELOCITIES = (2, 3, 5)
 """The observation's velocities (vx, vy, angular) that a key changes."""
 
 INTERNAL_MODEL = np.array(
@@ -43,27 +46,70 @@ knows of the engines, not the simulator (no engine dispersion, leg springs or te
 
 
 def _features(obs: np.ndarray) -> np.ndarray:
+    """The internal model's features ``[1, sin(angle), cos(angle)]`` of observations ``[..., 9]``
+    (what :data:`INTERNAL_MODEL` is fitted on; :func:`_predict_row` computes them per row)."""
     angle = obs[..., 4]
     return np.stack([np.ones_like(angle), np.sin(angle), np.cos(angle)], -1)
 
 
+@numba.njit(cache=True)
+def _predict_row(obs: np.ndarray, key: int, out: np.ndarray) -> None:
+    """:func:`predict_frame` for one row (float64) into ``out``."""
+    out[:] = obs
+    for position, velocity, rate in OBSERVATION_RATES:
+        out[position] += rate * obs[velocity] / FPS
+    sin_angle, cos_angle = math.sin(obs[4]), math.cos(obs[4])
+    for column in range(len(VELOCITIES)):
+        out[VELOCITIES[column]] += (INTERNAL_MODEL[key, 0, column] + sin_angle * INTERNAL_MODEL[key, 1, column]
+                                    + cos_angle * INTERNAL_MODEL[key, 2, column])
+    if out[1] <= 0.0:
+        out[1] = 0.0
+        out[3] = max(out[3], 0.0)
+        out[6] = 1.0
+        out[7] = 1.0
+
+
+@numba.njit(cache=True)
+def _predict_frames(obs: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    nxt = np.empty_like(obs)
+    for row in range(obs.shape[0]):
+        _predict_row(obs[row], keys[row], nxt[row])
+    return nxt
+
+
 def predict_frame(obs: np.ndarray, keys: np.ndarray) -> np.ndarray:
-    """The internal model's next frame for observations ``[N, 9]`` under keys ``[N]``.
+    """The internal model's next frame for observations ``[N, 9]`` (float64) under keys ``[N]``.
 
     Positions move at the velocities seen (:data:`OBSERVATION_RATES`), the velocities
     change as :data:`INTERNAL_MODEL` says, and the lander stops at the pad's height
     (``y = 0``): below it the model puts it on its legs (``y = 0``, no downward speed,
     both leg flags set), as a person knows the ground stops a fall.
     """
-    nxt = obs.copy()
-    for position, velocity, rate in OBSERVATION_RATES:
-        nxt[:, position] += rate * obs[:, velocity] / FPS
-    nxt[:, VELOCITIES] += np.einsum("nf,nfv->nv", _features(obs), INTERNAL_MODEL[keys])
-    down = nxt[:, 1] <= 0.0
-    nxt[down, 1] = 0.0
-    nxt[down, 3] = np.maximum(nxt[down, 3], 0.0)
-    nxt[down, 6:8] = 1.0
-    return nxt
+    return _predict_frames(np.ascontiguousarray(obs, dtype=np.float64), np.ascontiguousarray(keys, dtype=np.int64))
+
+
+@numba.njit(cache=True)
+def _carry_forward(guess: np.ndarray, issued: np.ndarray, delay: np.ndarray) -> None:
+    """Steps row ``i`` of ``guess`` (in place) ``delay[i]`` frames with the keys ``issued[i]``."""
+    scratch = np.empty(guess.shape[1])
+    for row in range(guess.shape[0]):
+        for frame in range(delay[row]):
+            _predict_row(guess[row], issued[row, frame], scratch)
+            guess[row] = scratch
+
+
+@numba.njit(cache=True)
+def _plan_keys(obs: np.ndarray, period: int) -> np.ndarray:
+    """The controller's key on each of ``period`` frames of the internal model, from ``obs`` (rows)."""
+    keys = np.empty((obs.shape[0], period), dtype=np.int64)
+    frame_now, scratch = np.empty(obs.shape[1]), np.empty(obs.shape[1])
+    for row in range(obs.shape[0]):
+        frame_now[:] = obs[row]
+        for frame in range(period):
+            keys[row, frame] = heuristic_key(frame_now)
+            _predict_row(frame_now, keys[row, frame], scratch)
+            frame_now[:] = scratch
+    return keys
 
 
 class SimulatedPilot(SimulatedHuman):
@@ -113,11 +159,7 @@ class SimulatedPilot(SimulatedHuman):
         obs = tensordict.get(self.observation_key).detach().cpu().numpy().astype(np.float64)
         if not self.traits.perceive_delayed:
             return torch.as_tensor(target_heuristic(obs), device=tensordict.device)
-        keys = np.empty((obs.shape[0], self.decision_period), dtype=np.int64)
-        for frame in range(self.decision_period):
-            keys[:, frame] = target_heuristic(obs)
-            obs = predict_frame(obs, keys[:, frame])
-        return torch.as_tensor(keys, device=tensordict.device)
+        return torch.as_tensor(_plan_keys(np.ascontiguousarray(obs), self.decision_period), device=tensordict.device)
 
     def anticipate(
         self, perceived: TensorDictBase, issued: torch.Tensor, delay: torch.Tensor
@@ -127,11 +169,8 @@ class SimulatedPilot(SimulatedHuman):
         (its own keys: in shared control the key applied may differ, and the model does
         not know it)."""
         obs = perceived.get(self.observation_key)
-        guess = obs.detach().cpu().numpy().astype(np.float64)
-        issued, delay = issued.cpu().numpy(), delay.cpu().numpy()
-        for frame in range(int(delay.max(initial=0))):
-            moving = frame < delay
-            guess[moving] = predict_frame(guess[moving], issued[moving, frame])
+        guess = np.ascontiguousarray(obs.detach().cpu().numpy(), dtype=np.float64)
+        _carry_forward(guess, np.ascontiguousarray(issued.cpu().numpy()), np.ascontiguousarray(delay.cpu().numpy()))
         guess = torch.as_tensor(guess, dtype=obs.dtype, device=obs.device)
         return perceived.clone(False).set(self.observation_key, guess)
 

@@ -54,6 +54,8 @@ class EnvStreams:
         self.calls = torch.zeros(0, dtype=torch.int64)
         """Per env, the calls it took part in."""
         self._key = int(_mix(torch.tensor(_signed(int(seed) % (1 << 64)))))
+        self._env_keys: tuple[int, torch.device | None, torch.Tensor, torch.Tensor] | None = None
+        """(envs, device, each env's key (a hash of the seed and its index), the draw indices): kept between calls."""
 
     def uniform(self, batch_shape: torch.Size, device: torch.device | None = None,
                 active: torch.Tensor | None = None) -> torch.Tensor:
@@ -65,9 +67,11 @@ class EnvStreams:
         n_envs = math.prod(batch_shape)
         if len(self.calls) < n_envs:
             self.calls = torch.cat([self.calls, self.calls.new_zeros(n_envs - len(self.calls))])
-        env = torch.arange(n_envs, dtype=torch.int64, device=device).unsqueeze(-1)
-        draw = torch.arange(self.draws, dtype=torch.int64, device=device)
-        env_key = _mix(self._key + _GOLDEN * env)
+        if self._env_keys is None or self._env_keys[:2] != (n_envs, device):
+            env = torch.arange(n_envs, dtype=torch.int64, device=device).unsqueeze(-1)
+            draw = torch.arange(self.draws, dtype=torch.int64, device=device)
+            self._env_keys = (n_envs, device, _mix(self._key + _GOLDEN * env), draw)
+        env_key, draw = self._env_keys[2:]
         counter = self.calls[:n_envs].to(device).unsqueeze(-1) * self.draws + draw
         bits = _mix(env_key + _GOLDEN * (counter + 1)).reshape(*batch_shape, self.draws)
         self.calls[:n_envs] += 1 if active is None else active.reshape(n_envs).to(self.calls.device, torch.int64)
