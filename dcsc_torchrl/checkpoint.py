@@ -132,12 +132,12 @@ def save_checkpoint(path: str | os.PathLike, *, task: str, payload: Mapping[str,
     return path
 
 
-def load_checkpoint(path: str | os.PathLike, *, task: str, modules: Sequence[str] = ()) -> dict[str, Any]:
+def load_checkpoint(path: str | os.PathLike, *, task: str | None, modules: Sequence[str] = ()) -> dict[str, Any]:
     """Reads a checkpoint with ``weights_only=True`` and checks it is one of ``task``, of this format.
 
     Args:
         path: the checkpoint file.
-        task: the task it must belong to.
+        task: the task it must belong to (``None``: any; the caller reads ``data["task"]``).
         modules: for a pretrained machine, the state dicts it is rebuilt from
             (:attr:`Task.checkpoint_modules <dcsc_torchrl.task.Task.checkpoint_modules>`):
             also require them and the network settings ``config.network``.
@@ -173,7 +173,7 @@ def load_checkpoint(path: str | os.PathLike, *, task: str, modules: Sequence[str
     if version != FORMAT_VERSION:
         raise CheckpointError(f"checkpoint {path} is of format version {version}, this dcsc-torchrl reads version "
                               f"{FORMAT_VERSION}: pretrain it again (delete it), or use the version that wrote it")
-    if data["task"] != task:
+    if task is not None and data["task"] != task:
         raise CheckpointError(
             f"checkpoint {path} was written for task {data['task']!r}, but this run is for task {task!r}"
         )

@@ -175,10 +175,17 @@ def _study(args: argparse.Namespace) -> Path:
 
 
 def _ship(args: argparse.Namespace) -> Path:
-    from dcsc_torchrl.shipped import export_machine
+    from dcsc_torchrl.checkpoint import load_checkpoint
+    from dcsc_torchrl.shipped import export_arbiter, export_machine
+    from dcsc_torchrl.state_arbiter import state_arbiter_task
 
-    path = export_machine(get_task(args.task), args.checkpoint)
-    _say(f"shipped machine in {path}")
+    task = get_task(args.task)
+    if load_checkpoint(args.checkpoint, task=None)["task"] == state_arbiter_task(task):
+        path = export_arbiter(task, args.checkpoint)
+        _say(f"shipped arbiter in {path}")
+    else:
+        path = export_machine(task, args.checkpoint)
+        _say(f"shipped machine in {path}")
     return path
 
 
@@ -197,7 +204,8 @@ COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], Any], Callabl
     "play": ("fly TargetLunarLander yourself, alone or with DC-SC", add_play_options, _play),
     "study": ("a person through the paper's protocol: practice, collaboration, validation", add_study_options,
               _study),
-    "ship": ("export a pretraining checkpoint as the machine shipped with the package", add_ship_options, _ship),
+    "ship": ("export a pretraining checkpoint (or a pretrained arbiter) as the one shipped with the package",
+             add_ship_options, _ship),
 }
 
 

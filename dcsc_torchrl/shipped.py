@@ -1,4 +1,5 @@
-"""The machines that ship with the package: the paper's setting, pretraining seed 0, weights only.
+"""The machines that ship with the package: the paper's setting, pretraining seed 0, weights only;
+beside LunarLander's machine that sees the pad, a state-dependent arbiter pretrained next to it.
 
 ``dcsc_torchrl/pretrained/<task>[_<view>]_seed0.pt`` holds the actor and critic state dicts
 of ``dcsc pretrain <task> seed=0`` (500 episodes; LunarLander's in both machine views), the
@@ -8,7 +9,11 @@ networks (:attr:`Task.make_networks`), so ``dcsc run <task> pretrain.shipped=tru
 ``dcsc play --assist dcsc`` and a first try work without pretraining; ``make reproduce``
 still pretrains from scratch.
 
-    dcsc ship TASK CHECKPOINT    # re-export a pretraining checkpoint
+``<machine file's stem>_state.pt`` is the state-dependent arbiter ``dcsc arbiter <task>
+pretrain.shipped=true`` pretrains next to that shipped machine (its default pool), the
+default of ``dcsc play lunarlander --assist state``.
+
+    dcsc ship TASK CHECKPOINT    # re-export a pretraining checkpoint, or a pretrained arbiter (arbiter.pt)
 """
 
 from __future__ import annotations
@@ -83,6 +88,33 @@ def export_machine(task: Task, checkpoint: str | Path, out: str | Path | None = 
         "command": f"dcsc pretrain {task.name} seed={data['config']['seed']}{view}",
     }
     return save_checkpoint(out or shipped_path(task, observes), task=task.name, payload=payload)
+
+
+def export_arbiter(task: Task, checkpoint: str | Path, out: str | Path | None = None) -> Path:
+    """Writes a pretrained arbiter (``dcsc arbiter``'s ``arbiter.pt``) as the one shipped beside the
+    shipped machine it was pretrained next to (:func:`shipped_arbiter_path`).
+
+    Raises:
+        ValueError: an arbiter pretrained next to another machine than the shipped one of its
+            config's ``pretrain.observes`` (one line).
+    """
+    from dcsc_torchrl.state_arbiter import (
+        load_pretrained_arbiter,
+        machine_fingerprint,
+        state_arbiter_task,
+    )
+
+    pretrained = load_pretrained_arbiter(checkpoint, task)  # refuses anything but a pretrained arbiter
+    data = load_checkpoint(checkpoint, task=state_arbiter_task(task))
+    observes = data["config"]["pretrain"].get("observes")
+    shipped = machine_fingerprint(shipped_machine(task, observes)[0])
+    if pretrained.machine != shipped:
+        raise ValueError(f"{checkpoint} was pretrained next to machine {pretrained.machine}, not the shipped one "
+                         f"({shipped}): pretrain it with `dcsc arbiter {task.name} pretrain.shipped=true`")
+    view = "" if observes is None else f" pretrain.observes={observes}"
+    payload = {key: value for key, value in data.items() if key not in ("format_version", "task")}
+    payload["command"] = f"dcsc arbiter {task.name} pretrain.shipped=true{view}"
+    return save_checkpoint(out or shipped_arbiter_path(task, observes), task=data["task"], payload=payload)
 
 
 def load_shipped(task: Task, observes: str | None = None) -> dict[str, Any]:

@@ -253,5 +253,6 @@ def add_study_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParse
 
 def add_ship_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``dcsc ship`` after the task."""
-    parser.add_argument("checkpoint", type=Path, help="a pretraining checkpoint (checkpoint.pt) of the task")
+    parser.add_argument("checkpoint", type=Path, help="a pretraining checkpoint (checkpoint.pt) of the task, or a "
+                        "state-dependent arbiter pretrained next to the shipped machine (dcsc arbiter's arbiter.pt)")
     return parser

@@ -5,12 +5,25 @@ from __future__ import annotations
 import pytest
 import torch
 
+from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.cli import main
 from dcsc_torchrl.config import load_config
 from dcsc_torchrl.networks import view_recipe_settings
 from dcsc_torchrl.recipes.configs import CONFIGS
 from dcsc_torchrl.recipes.machines import PRETRAINING
-from dcsc_torchrl.shipped import greedy_return, load_shipped, shipped_machine, shipped_path
+from dcsc_torchrl.recipes.play import load_play_arbiter
+from dcsc_torchrl.shipped import (
+    greedy_return,
+    load_shipped,
+    shipped_arbiter_path,
+    shipped_machine,
+    shipped_path,
+)
+from dcsc_torchrl.state_arbiter import (
+    load_pretrained_arbiter,
+    machine_fingerprint,
+    state_arbiter_task,
+)
 from dcsc_torchrl.tasks import get_task
 
 
@@ -75,3 +88,35 @@ def test_the_recorded_command_rederives_the_shipped_weights(name, observes, tmp_
     for module in task.checkpoint_modules:
         for key, value in shipped[module].items():
             torch.testing.assert_close(retrained[module][key], value, rtol=0, atol=0, msg=f"{module}.{key}")
+
+
+def test_the_shipped_arbiter_was_pretrained_next_to_the_shipped_machine_against_the_default_pool():
+    task = get_task("lunarlander")
+    path = shipped_arbiter_path(task, "target")
+    assert path.stat().st_size < 200_000
+    data = load_checkpoint(path, task=state_arbiter_task(task))
+    assert data["command"] == "dcsc arbiter lunarlander pretrain.shipped=true pretrain.observes=target"
+    assert (path.parent / "README.md").read_text().count(f"`{data['command']}`") == 1
+    pretrained = load_pretrained_arbiter(path, task)
+    machine, _ = shipped_machine(task, "target")
+    assert pretrained.machine == machine_fingerprint(machine)
+    protocol = load_config(CONFIGS["lunarlander"].protocol)
+    assert list(pretrained.operators) == list(protocol.state.pool)
+    assert data["config"]["state"] == dict(protocol.state) | {"arbiters": None}  # the yaml's settings, untuned
+    pretrained.check_evaluated_next_to("expert", machine)  # a human-like cell may run it
+    with pytest.raises(ValueError, match="surrogate_noisy"):
+        pretrained.check_evaluated_next_to("surrogate_noisy", machine)
+    assert load_play_arbiter(None, protocol).machine == pretrained.machine  # dcsc play --assist state's default
+
+
+@pytest.mark.slow
+def test_the_recorded_command_rederives_the_shipped_arbiter(tmp_path):
+    task = get_task("lunarlander")
+    shipped = load_checkpoint(shipped_arbiter_path(task, "target"), task=state_arbiter_task(task))
+    command = shipped["command"].split()
+    assert main([*command[1:], "--out", str(tmp_path)]) == 0
+    again = load_checkpoint(tmp_path / "arbiter.pt", task=state_arbiter_task(task))
+    for part in ("arbiter", "value"):
+        for key, value in shipped["state"][part].items():
+            if isinstance(value, torch.Tensor):
+                torch.testing.assert_close(again["state"][part][key], value, rtol=0, atol=0, msg=f"{part}.{key}")

@@ -27,7 +27,7 @@ from dcsc_torchrl.machine import MCDropoutPolicy
 from dcsc_torchrl.networks import mlp
 from dcsc_torchrl.online import PolicyGradientLearner
 from dcsc_torchrl.policy import SharedPolicyModule
-from dcsc_torchrl.shipped import shipped_machine
+from dcsc_torchrl.shipped import shipped_machine, shipped_path
 from dcsc_torchrl.state_arbiter import (
     StateDependentArbiter,
     load_pretrained_arbiter,
@@ -163,6 +163,28 @@ def test_dcsc_arbiter_pretrains_next_to_the_machine_and_records_its_pool(pretrai
     torch.save(data, pretrained / "old.pt")
     with pytest.raises(CheckpointError, match=r"lacks the learner's settings \['critic_updates'\]"):
         load_pretrained_arbiter(pretrained / "old.pt", LUNAR)
+
+
+def test_dcsc_ship_exports_an_arbiter_of_the_shipped_machine_and_refuses_one_of_another(pretrained, tmp_path,
+                                                                                      monkeypatch, capsys):
+    import shutil
+
+    import dcsc_torchrl.shipped as shipped
+
+    shutil.copy(shipped_path(LUNAR, "target"), tmp_path)
+    monkeypatch.setattr(shipped, "SHIPPED_DIR", tmp_path)  # never the package's own files
+    assert main(["ship", "lunarlander", str(pretrained / "arbiter.pt")]) == 0
+    assert "shipped arbiter in" in capsys.readouterr().err
+    exported = load_checkpoint(tmp_path / "lunarlander_target_seed0_state.pt", task="lunarlander-state-arbiter")
+    assert exported["command"] == "dcsc arbiter lunarlander pretrain.shipped=true pretrain.observes=target"
+    assert load_pretrained_arbiter(tmp_path / "lunarlander_target_seed0_state.pt", LUNAR).operators == (
+        "surrogate_noisy",)
+    other = torch.load(pretrained / "arbiter.pt", weights_only=True)
+    other["machine"] = "0123456789abcdef"  # pretrained next to a machine of one's own
+    torch.save(other, tmp_path / "other.pt")
+    assert main(["ship", "lunarlander", str(tmp_path / "other.pt")]) == 2
+    err = capsys.readouterr().err
+    assert "pretrained next to machine 0123456789abcdef, not the shipped one" in err and len(err.splitlines()) == 1
 
 
 def test_a_cell_runs_dcsc_state_from_the_pretrained_arbiter_and_refuses_its_pool(pretrained, tmp_path, capsys):
