@@ -9,7 +9,7 @@ One small class per action kind, as TorchRL has one loss per algorithm:
   critic's TD loss keeping it adapting.
 
 :func:`make_online_learner` picks the class from the policy. Both soft-update their
-target critic with ``SoftUpdate`` and keep :attr:`OnlineLearner.history`, one row per
+target critic with ``SoftUpdate`` (:class:`~dcsc_torchrl.losses.ForeachSoftUpdate`) and keep :attr:`OnlineLearner.history`, one row per
 update (theta, its gradient, both losses).
 
 :class:`PolicyGradientLearner` is the state-dependent arbiter's (:mod:`dcsc_torchrl.state_arbiter`):
@@ -26,9 +26,9 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ValueOperator
-from torchrl.objectives import A2CLoss, DDPGLoss, LossModule, SoftUpdate, ValueEstimators
+from torchrl.objectives import A2CLoss, DDPGLoss, LossModule, ValueEstimators
 
-from dcsc_torchrl.losses import AuthorityThetaLoss, ThetaLoss, call_with_params
+from dcsc_torchrl.losses import AuthorityThetaLoss, ForeachSoftUpdate, ThetaLoss, call_with_params
 from dcsc_torchrl.policy import SharedPolicyModule
 
 THETA_OPTIMIZERS = {"sgd": torch.optim.SGD, "adam": torch.optim.Adam}
@@ -74,7 +74,7 @@ class OnlineLearner(ABC):
         self.gamma = float(gamma)
         self.updates_per_batch = int(updates_per_batch)
         self.loss = self._make_loss(policy, critic)
-        self.targets = SoftUpdate(self.loss, tau=tau) if self.soft_updated else None
+        self.targets = ForeachSoftUpdate(self.loss, tau=tau) if self.soft_updated else None
         self.theta_optim = THETA_OPTIMIZERS[theta_optimizer](list(policy["arbiter"].parameters()), lr=theta_lr)
         self.critic_optim = torch.optim.Adam(list(self.critic_params.values(True, True)), lr=critic_lr, foreach=True)
         self.history: list[dict[str, Any]] = []

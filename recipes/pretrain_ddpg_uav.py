@@ -26,10 +26,11 @@ from omegaconf import DictConfig
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.modules import AdditiveGaussianModule, ValueOperator
-from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
+from torchrl.objectives import DDPGLoss, ValueEstimators
 
 from dcsc_torchrl.batched_envs import UAV_INFO_KEYS, make_uav_env
 from dcsc_torchrl.config import to_plain
+from dcsc_torchrl.losses import ForeachSoftUpdate
 from dcsc_torchrl.networks import uav_actor, uav_critic
 from dcsc_torchrl.recipes import pretrain
 from dcsc_torchrl.recipes.configs import CONFIGS
@@ -68,7 +69,7 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
     # --- loss, target networks, optimisers ----------------------------------------------
     loss = DDPGLoss(actor, critic, delay_actor=True, delay_value=True)
     loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.loss.gamma)
-    targets = SoftUpdate(loss, eps=cfg.loss.polyak)
+    targets = ForeachSoftUpdate(loss, eps=cfg.loss.polyak)
     actor_optim = torch.optim.Adam(loss.actor_network_params.values(True, True), lr=cfg.optim.actor_lr, foreach=True)
     critic_optim = torch.optim.Adam(loss.value_network_params.values(True, True), lr=cfg.optim.critic_lr, foreach=True)
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.optim.buffer_size, device=device),

@@ -333,3 +333,35 @@ def test_ddpg_loss_gives_theta_the_eq19_gradient():
     expected = -(b * beta * (1 - beta) * (td["machine_action"] - td["human_action"]) * dq_da).mean(0)
     torch.testing.assert_close(grad, expected)
     assert grad.abs().min() > 0
+
+
+def _ddpg_loss(seed: int) -> DDPGLoss:
+    torch.manual_seed(seed)
+    actor = TensorDictModule(nn.Sequential(nn.Linear(4, 16), nn.ReLU(), nn.Linear(16, 2)), ["observation"], ["action"])
+    critic = TensorDictModule(nn.Sequential(nn.Linear(6, 16), nn.ReLU(), nn.Linear(16, 1)),
+                              ["observation", "action"], ["state_action_value"])
+    return DDPGLoss(actor, critic, delay_actor=True, delay_value=True)
+
+
+def test_the_foreach_soft_update_is_torchrls_to_the_bit_also_after_a_load():
+    from dcsc_torchrl.losses import ForeachSoftUpdate
+
+    losses = [_ddpg_loss(0), _ddpg_loss(0)]
+    updaters = [SoftUpdate(losses[0], eps=0.99), ForeachSoftUpdate(losses[1], eps=0.99)]
+    for step in range(12):
+        if step == 6:  # a resumed run loads another state into the same loss
+            state = _ddpg_loss(1).state_dict()
+            for loss in losses:
+                loss.load_state_dict(state)
+        for loss, updater in zip(losses, updaters, strict=True):
+            generator = torch.Generator().manual_seed(step)
+            with torch.no_grad():  # an optimiser's step, the same on both
+                for param in loss.parameters():
+                    if param.requires_grad:
+                        param.add_(torch.randn(param.shape, generator=generator))
+            updater.step()
+    torchrl, ours = (loss.state_dict() for loss in losses)
+    assert ours.keys() == torchrl.keys()
+    assert all(torch.equal(ours[key], torchrl[key]) for key in torchrl)
+    assert not torch.equal(ours["target_value_network_params.module.0.weight"],
+                           ours["value_network_params.module.0.weight"])  # the targets lag, as they should
