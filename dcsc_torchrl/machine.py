@@ -52,13 +52,12 @@ def linear_widths(network: nn.Module) -> tuple[int | None, int | None]:
 
 
 @contextmanager
-def mc_dropout_active(network: nn.Module) -> Iterator[None]:
-    """Switches only the dropout layers of ``network`` on, then back to eval mode.
+def mc_dropout_active(layers: Sequence[nn.Module]) -> Iterator[None]:
+    """Switches the dropout ``layers`` (a network's :func:`dropout_layers`) on, then back to eval mode.
 
-    Other layers (e.g. batch norm) keep their mode, so the M-sample pass samples
-    dropout masks and nothing else.
+    The network's other layers (e.g. batch norm) keep their mode, so the M-sample pass
+    samples dropout masks and nothing else.
     """
-    layers = dropout_layers(network)
     for layer in layers:
         layer.train()
     try:
@@ -165,6 +164,8 @@ class MCDropoutPolicy(TensorDictModuleBase):
                 "would always be 0; build the machine actor with dropout > 0"
             )
         self.network = network.eval()
+        self.dropouts = layers
+        """The network's dropout layers, found once (the forward of every frame switches them on)."""
         self.output = output
         self.num_samples = int(num_samples)
         self.lam = lam
@@ -217,7 +218,7 @@ class MCDropoutPolicy(TensorDictModuleBase):
     def sample(self, *inputs: torch.Tensor) -> torch.Tensor:
         """M dropout samples of the policy output, ``[M, *batch, d]``, in one forward pass."""
         expanded = [x.expand(self.num_samples, *x.shape) for x in inputs]
-        with mc_dropout_active(self.network):
+        with mc_dropout_active(self.dropouts):
             out = self.network(*expanded)
         return torch.softmax(out, dim=-1) if self.output == "probs" else out
 
