@@ -80,7 +80,7 @@ def pretrain_state_arbiter(
     Scenario seeds start at ``first_seed`` and never repeat (keep them off the validation seeds).
 
     Args:
-        task: a discrete task.
+        task: the task (``policy_gradient``: a discrete one).
         machine_net: the cell's pretrained actor (frozen).
         pool: the operators by name (never the one a cell will evaluate).
         human, machine, arbiter, protocol: the protocol's settings (``arbiter.form`` and its
@@ -99,12 +99,10 @@ def pretrain_state_arbiter(
         mean beta of its first episodes) and the frames the arbiter learned from last, each
         with the pretrained arbiter's beta (:func:`~dcsc_torchrl.episodes.concat_runs`).
     """
-    if not task.discrete:
-        raise ValueError(f"task {task.name}: the state-dependent arbiter learns on Eq. 14's mixture of keys; "
-                         "a continuous task has no such mixture")
     if not pool:
         raise ValueError("the pretraining pool holds no operator")
     settings = checked_learner_settings(learner)
+    check_algorithm_for(task, settings["algorithm"])
     if settings["algorithm"] == "policy_gradient":
         protocol = dataclasses.replace(protocol, shared_action="sample")
     cells = {name: ProtocolCell(task, operator, machine_net, base={}, pretrain_seed=seed, human=human,
@@ -119,7 +117,8 @@ def pretrain_state_arbiter(
     first = next(iter(cells.values()))
     shared = StateDependentArbiter(first.observation_size, first.action_spec.shape[-1], task.action_dims,
                                    form=arbiter.form, theta_init=start["theta_init"], gain=start["gain"],
-                                   hidden=hidden, spread=spread)
+                                   hidden=hidden, spread=spread,
+                                   machine_key="machine_probs" if task.discrete else "machine_action")
     critic = state_arbiter_critic(settings["algorithm"], shared, value_hidden)
     pretrained = PretrainedArbiter(shared, critic, settings, tuple(pool), machine_fingerprint(machine_net))
     policies = {name: cell.policy("dcsc_state", shared) for name, cell in cells.items()}
@@ -131,6 +130,14 @@ def pretrain_state_arbiter(
     with torch.no_grad():
         shared(frames)  # the pretrained arbiter's beta on them, for the figure
     return pretrained, rows, frames
+
+
+def check_algorithm_for(task: Task, algorithm: str) -> None:
+    """Refuses ``policy_gradient`` on a continuous task (one line): it learns on Eq. 14's mixture
+    of keys, which a continuous task does not draw from."""
+    if algorithm == "policy_gradient" and not task.discrete:
+        raise ValueError(f"state.algorithm policy_gradient learns on Eq. 14's mixture of keys, which task "
+                         f"{task.name} does not draw from (its actions are blended): use authority")
 
 
 class SeedBlocks:

@@ -46,7 +46,7 @@ from dcsc_torchrl.recipes.options import (
     add_sweep_options,
     description,
 )
-from dcsc_torchrl.tasks import COPILOT_TASK_NAMES, TASK_NAMES, TASKS, get_task
+from dcsc_torchrl.tasks import COPILOT_TASK_NAMES, TASK_NAMES, get_task
 
 
 # -- the sub-commands' work: every heavy import is inside ------------------------------
@@ -220,12 +220,10 @@ def build_parser() -> Parser:
     for name, (summary, add_options, handler) in COMMANDS.items():
         sub = commands.add_parser(name, help=summary, description=summary, prog=f"dcsc {name}",
                                   epilog=RUN_EPILOG if name == "run" else None)
-        if name in ("pretrain", "run", "ship", "study"):
+        if name in ("pretrain", "run", "ship", "study", "arbiter"):
             sub.add_argument("task", choices=TASK_NAMES, help="the task")
         elif name == "copilot":
             sub.add_argument("task", choices=COPILOT_TASK_NAMES, help="the task")
-        elif name == "arbiter":
-            sub.add_argument("task", choices=[n for n in TASK_NAMES if TASKS[n].discrete], help="the task")
         elif name == "play":
             sub.add_argument("task", choices=["lunarlander"], help="the task (LunarLander only)")
         add_options(sub)

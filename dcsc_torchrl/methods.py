@@ -24,7 +24,7 @@ dcsc_frozen   frozen      a learned arbiter fed its confidences' collaboration m
                           (:class:`FrozenConfidenceArbiter`): what the confidences add
 dcsc_state    pretrained  the state-dependent arbiter (:mod:`dcsc_torchrl.state_arbiter`):
                           theta a function of the frame, pretrained in simulation against
-                          a pool of operators, fine-tuned online; discrete tasks; run only
+                          a pool of operators, fine-tuned online; run only
                           when named, with a pretrained arbiter given
 constant      sweep       :class:`ConstantArbiter`, once per beta of a sweep (its best beta
                           is the report's oracle row ``best_constant``)
@@ -109,7 +109,7 @@ ARBITER_FORMS = tuple(m.form for m in METHODS.values() if m.kind == "learned")
 def task_methods(task: Task, methods: Sequence[str] = DEFAULT_METHODS) -> tuple[str, ...]:
     """``methods`` that ``task`` defines: all of them, less ``rule`` for a task without an
     :attr:`~dcsc_torchrl.tasks.Task.authority_rule`, ``reddy`` for one without a
-    :attr:`~dcsc_torchrl.tasks.Task.make_copilot_network` and ``dcsc_state`` for a continuous one.
+    :attr:`~dcsc_torchrl.tasks.Task.make_copilot_network`.
 
     Examples:
         >>> from dcsc_torchrl.tasks import get_task
@@ -117,8 +117,7 @@ def task_methods(task: Task, methods: Sequence[str] = DEFAULT_METHODS) -> tuple[
         (True, False)
     """
     return tuple(m for m in methods if (m != "rule" or task.authority_rule is not None)
-                 and (m != "reddy" or task.make_copilot_network is not None)
-                 and (m != "dcsc_state" or task.discrete))
+                 and (m != "reddy" or task.make_copilot_network is not None))
 
 
 def check_task_methods(task: Task, methods: Sequence[str]) -> None:

@@ -140,6 +140,13 @@ def _lunar_coordinates(observation: torch.Tensor) -> dict[str, torch.Tensor]:
     return {"x − pad": observation[..., 0] - observation[..., 8], "altitude": observation[..., 1]}
 
 
+def _uav_coordinates(observation: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Where the UAV is against the obstacles and the goal: the distance to the nearest
+    obstacle's surface and to the goal (the norms of the observation's first two vectors)."""
+    return {"distance to the nearest obstacle": observation[..., 0:3].norm(dim=-1),
+            "distance to the goal": observation[..., 3:6].norm(dim=-1)}
+
+
 def _lunar_copilot_network(hidden: Sequence[int]) -> CopilotQNetwork:
     """Reddy et al.'s LunarLander copilot: the 4 keys, the pad's x masked (deepassist's ``obs[8]``)."""
     import torch
@@ -203,6 +210,7 @@ TASKS: dict[str, Task] = {
             info_keys=("success", "collision", "out_of_bounds", "path_length"),
             episode_keys=("success", "path_length"), metrics=("success", "path_length", "return"), max_steps=500,
             checkpoint_modules=("actor", "critic"), trace_vectors={"position": "xyz"}, action_labels=("ρ0", "σ0", "τ"),
+            state_coordinates=_uav_coordinates,
             make_envs=_uav_envs, make_operator=_uav_operator, make_networks=_uav_networks,
             make_pretraining_envs=_uav_pretraining_envs, make_person=_uav_person,
             plot_trajectories=_uav_trajectories,

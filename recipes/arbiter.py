@@ -25,7 +25,7 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig
 
-from dcsc_torchrl.arbiter_pretraining import pretrain_state_arbiter
+from dcsc_torchrl.arbiter_pretraining import check_algorithm_for, pretrain_state_arbiter
 from dcsc_torchrl.config import to_plain, writable_folder
 from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.recipes.machines import pretrained_machine
@@ -38,12 +38,11 @@ from dcsc_torchrl.tasks import Task
 
 def arbiter_config(task: Task, overrides: Sequence[str] = (), *, quick: bool = False) -> DictConfig:
     """The task's protocol config with ``overrides``, checked whole: ``state.pool`` names presets,
-    ``state.algorithm`` an algorithm, ``state.betas`` are in [0, 1]."""
+    ``state.algorithm`` an algorithm the task can learn with, ``state.betas`` are in [0, 1]."""
     cfg = task_config(task, overrides, quick=quick)
-    if "state" not in cfg:
-        raise ValueError(f"task {task.name} has no state-dependent arbiter (its protocol yaml has no state group)")
     check_names("state.pool", "operator preset", list(cfg.state.pool), list(PRESETS))
     check_names("state.algorithm", "algorithm", [cfg.state.algorithm], list(LEARNER_SETTINGS))
+    check_algorithm_for(task, cfg.state.algorithm)
     return cfg
 
 

@@ -105,7 +105,7 @@ def test_the_rule_method_runs_for_a_task_with_an_authority_rule_only():
     with pytest.raises(ValueError, match="method dcsc_state brings its own arbiter"):
         make_arbiter("dcsc_state", 1)
     assert "dcsc_state" in task_methods(get_task("lunarlander"), METHOD_NAMES)
-    assert "dcsc_state" not in task_methods(get_task("uav"), METHOD_NAMES)  # A2C on the mixture of keys
+    assert "dcsc_state" in task_methods(get_task("uav"), METHOD_NAMES)  # beta per action dimension (authority)
 
 
 def test_the_lunar_rule_hands_the_machine_the_controls_over_the_middle_of_the_pad():

@@ -219,7 +219,9 @@ def test_the_policy_gradient_algorithm_pretrains_and_fine_tunes_in_the_cell(tmp_
 
 @pytest.mark.parametrize(("argv", "line"), [
     (["run", "lunarlander", "--quick", "--methods", "dcsc_state"], "method dcsc_state needs state.arbiters"),
-    (["run", "uav", "--quick", "--methods", "dcsc_state"], "task uav does not define method(s) dcsc_state"),
+    (["run", "uav", "--quick", "--methods", "dcsc_state"], "method dcsc_state needs state.arbiters"),
+    (["arbiter", "uav", "--quick", "state.algorithm=policy_gradient"],
+     "state.algorithm policy_gradient learns on Eq. 14's mixture of keys, which task uav does not draw from"),
     (["arbiter", "lunarlander", "--quick", "state.pool=[nobody]"], "state.pool: unknown operator preset"),
     (["arbiter", "lunarlander", "--quick", "state.lr=0"], "state.lr: expected a value > 0, got 0"),
     (["arbiter", "lunarlander", "--quick", "state.algorithm=sarsa"], "state.algorithm: unknown algorithm 'sarsa'"),
@@ -232,7 +234,18 @@ def test_bad_state_arbiter_settings_are_refused_at_the_door(argv, line, tmp_path
     assert line in err and err.count("\n") == 1
 
 
-def test_dcsc_arbiter_offers_the_discrete_tasks_only(capsys):
-    with pytest.raises(SystemExit):
-        main(["arbiter", "uav", "--quick"])
-    assert "argument task: invalid choice: 'uav' (choose from 'lunarlander')" in capsys.readouterr().err
+def test_the_uav_arbiter_learns_beta_per_action_dimension_and_runs_in_a_cell(tmp_path):
+    out = tmp_path / "arbiter"
+    assert main(["arbiter", "uav", "--quick", "--out", str(out), "pretrain.shipped=true"]) == 0
+    uav = get_task("uav")
+    pretrained = load_pretrained_arbiter(out / "arbiter.pt", uav)
+    assert pretrained.arbiter.dims == 3 and pretrained.arbiter.in_keys[-1] == "machine_action"
+    assert pretrained.settings["algorithm"] == "authority"
+    assert (out / "fig_state_beta.png").stat().st_size > 0  # beta against the distance to the nearest obstacle
+    assert main(["run", "uav", "--quick", "--methods", "operator", "dcsc_state", "--out", str(tmp_path / "run"),
+                 "pretrain.shipped=true", "pretrain.seeds=[0]", f"state.arbiters=[{out / 'arbiter.pt'}]"]) == 0
+    episodes = pd.read_csv(tmp_path / "run" / "uav" / "episodes.csv")
+    state = episodes.query("phase == 'validation' and method == 'dcsc_state'")
+    assert len(state) > 0 and state["mean_beta"].between(0, 1).all()
+    theta = pd.read_csv(tmp_path / "run" / "uav" / "theta.csv")
+    assert set(theta["method"]) == {"dcsc_state"} and len(theta) > 0
