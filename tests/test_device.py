@@ -72,6 +72,10 @@ def test_every_arbiter_blends_on_the_device(device, method):
     if method == "dcsc_frozen":  # built by the protocol from a learned arbiter
         arbiter = FrozenConfidenceArbiter(make_arbiter("dcsc_centred", 3, theta_init=0.0),
                                           0.5, 0.3)
+    elif method == "dcsc_state":  # pretrained outside the cell: beta per action dimension
+        from dcsc_torchrl.state_arbiter import StateDependentArbiter
+
+        arbiter = StateDependentArbiter(9, 3, 3, hidden=(8,), machine_key="machine_action")
     else:
         arbiter = make_arbiter(method, 3, theta_init=1.0, hula_threshold=0.01, constant_beta=0.4,
                                rule=lambda obs: obs[..., 0] > 0, q_value=uav_critic([16]), expert_q=uav_critic([16]),
