@@ -25,6 +25,7 @@ import torch
 from tensordict import TensorDictBase
 
 from dcsc_torchrl.episodes import EpisodeBatch, concat_runs
+from dcsc_torchrl.machine import machine_mean_key
 from dcsc_torchrl.online import AuthorityOnlineLearner, PolicyGradientLearner
 from dcsc_torchrl.protocol import (
     ArbiterSettings,
@@ -118,7 +119,7 @@ def pretrain_state_arbiter(
     shared = StateDependentArbiter(first.observation_size, first.action_spec.shape[-1], task.action_dims,
                                    form=arbiter.form, theta_init=start["theta_init"], gain=start["gain"],
                                    hidden=hidden, spread=spread,
-                                   machine_key="machine_probs" if task.discrete else "machine_action")
+                                   machine_key=machine_mean_key(task.discrete))
     critic = state_arbiter_critic(settings["algorithm"], shared, value_hidden)
     pretrained = PretrainedArbiter(shared, critic, settings, tuple(pool), machine_fingerprint(machine_net))
     policies = {name: cell.policy("dcsc_state", shared) for name, cell in cells.items()}

@@ -31,6 +31,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 
 from dcsc_torchrl.checks import check_in_range, check_values
+from dcsc_torchrl.machine import machine_mean_key
 
 _EXTRA_STATE = "_extra_state"
 
@@ -398,7 +399,7 @@ class InterventionArbiter(Arbiter):
         self.q_value = q_value
         self.discrete = bool(discrete)
         self.observation_key = observation_key
-        self.machine_key = machine_key or ("machine_probs" if discrete else "machine_action")
+        self.machine_key = machine_key or machine_mean_key(discrete)
         self.human_key = human_key
         self.in_keys = [*self.in_keys[:2], observation_key, self.machine_key, human_key]
 

@@ -24,6 +24,11 @@ _OUT_KEYS = {
 }
 
 
+def machine_mean_key(discrete: bool) -> str:
+    """Where the MC-dropout machine writes its mean output: ``machine_probs`` (keys) or ``machine_action``."""
+    return _OUT_KEYS["probs" if discrete else "action"][0]
+
+
 def dropout_layers(network: nn.Module) -> list[nn.Module]:
     """Returns the dropout layers of ``network`` (those MC dropout switches on)."""
     return [m for m in network.modules() if isinstance(m, _DROPOUT_TYPES)]
