@@ -88,14 +88,14 @@ def test_quick_map_writes_its_table_and_heatmap(tmp_path, monkeypatch):
 def test_leave_one_out_pretrains_one_arbiter_per_operator_without_it(capsys):
     from dcsc_torchrl.recipes.map import arbiter_pools, map_config
 
-    cfg = map_config(["operators=[expert,noisy,surrogate_laggy]"])
-    assert cfg.arbiters_leave_one_out and "dcsc_state" not in cfg.methods  # named to run
+    assert not map_config().arbiters_leave_one_out and "dcsc_state" in map_config().methods  # the two pools
+    cfg = map_config(["operators=[expert,noisy,surrogate_laggy]", "arbiters_leave_one_out=true"])
     assert arbiter_pools(cfg) == {"without-expert": ["noisy", "surrogate_laggy"],
                                   "without-noisy": ["expert", "surrogate_laggy"],
                                   "without-surrogate_laggy": ["expert", "noisy"]}
-    assert arbiter_pools(map_config(["arbiters_leave_one_out=false"]))["surrogates"] == [
+    assert arbiter_pools(map_config())["surrogates"] == [
         "surrogate_expert", "surrogate_noisy", "surrogate_laggy"]
-    assert main(["map", "operators=[expert]", "methods=[operator,dcsc_state]"]) == 2
+    assert main(["map", "operators=[expert]", "methods=[operator,dcsc_state]", "arbiters_leave_one_out=true"]) == 2
     assert "arbiters_leave_one_out: an arbiter pretrained without the cell's operator needs another operator" in (
         capsys.readouterr().err)
 
