@@ -4,7 +4,8 @@ validation success against the better partner alone, paired per scenario, with 9
 Input: the validation rows of several grids (``episodes.csv``), one per machine, with a
 ``machine`` column naming it. Output: one row per (machine, operator, method) with the
 method's success, the better partner's, their per-scenario difference and its CI
-(:func:`sharing_map`), a markdown table of the differences (:func:`map_markdown`), a
+(:func:`sharing_map`), a markdown table of the differences (:func:`map_markdown`), each
+method's count of cells above, level with and below the better partner (:func:`map_tally`), a
 heatmap (:func:`plot_map`) and, cell by cell, which of the paper's claims hold
 (:func:`paper_claims`). docs/records/results.md opens with it.
 """
@@ -117,6 +118,43 @@ def map_markdown(table: pd.DataFrame) -> str:
             text = _points(delta) + ("" if math.isnan(half) else f" ± {100 * half:.0f}")
             entries.append(f"**{text}**" if delta - half > 0 else text)
         lines.append("| " + " | ".join([machine, operator, *alone, *entries, str(int(by["scenarios"].max()))]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+TALLY_COLUMNS = ("method", "cells", "above", "level", "below", "within_2", "mean_delta")
+"""The columns of :func:`map_tally`'s table."""
+
+
+def map_tally(table: pd.DataFrame) -> pd.DataFrame:
+    """Per method of :func:`sharing_map`'s ``table`` (the partners aside), over its cells: how
+    many it lands above both partners (the whole 95% CI of ``delta`` above 0), level with the
+    better one (the CI holding 0), below it (the whole CI below 0), at most 2 points below it
+    (``delta >= -0.02``), and its mean ``delta``.
+
+    Examples:
+        >>> table = pd.DataFrame({"method": ["dcsc"] * 3, "delta": [0.2, 0.0, -0.3], "delta_ci": [0.1, 0.0, 0.1]})
+        >>> row = map_tally(table).iloc[0]
+        >>> [int(row[c]) for c in ("cells", "above", "level", "below", "within_2")]
+        [3, 1, 1, 1, 2]
+    """
+    rows = []
+    for method in map_method_order(list(table["method"].unique())):
+        if method in ("operator", "machine"):
+            continue
+        cells = table[table["method"] == method]
+        low, high = cells["delta"] - cells["delta_ci"].fillna(0.0), cells["delta"] + cells["delta_ci"].fillna(0.0)
+        rows.append({"method": method, "cells": len(cells), "above": int((low > 0).sum()),
+                     "level": int(((low <= 0) & (high >= 0)).sum()), "below": int((high < 0).sum()),
+                     "within_2": int((cells["delta"] >= -0.02 - 1e-9).sum()), "mean_delta": cells["delta"].mean()})
+    return pd.DataFrame(rows, columns=list(TALLY_COLUMNS))
+
+
+def tally_markdown(tally: pd.DataFrame) -> str:
+    """:func:`map_tally`'s table as markdown (the mean in points)."""
+    lines = ["| method | cells | above both partners | level with the better | below it | within 2 points of it "
+             "| mean (points) |", "|---|" + "---:|" * 6]
+    lines += [f"| {_label(row['method'])} | {row['cells']} | {row['above']} | {row['level']} | {row['below']} "
+              f"| {row['within_2']} | {_points(row['mean_delta'])} |" for _, row in tally.iterrows()]
     return "\n".join(lines) + "\n"
 
 

@@ -47,9 +47,11 @@ from dcsc_torchrl.runlog import write_atomic
 from dcsc_torchrl.sharing_map import (
     claims_markdown,
     map_markdown,
+    map_tally,
     paper_claims,
     plot_map,
     sharing_map,
+    tally_markdown,
 )
 from dcsc_torchrl.tasks import get_task
 
@@ -185,7 +187,9 @@ def write_map(out: Path, task: str, machines: Sequence[str], *, quick: bool = Fa
     plot_map(table, out / "fig_map.png", f"{task}: success − the better partner alone (validation, 95% CI)")
     text = (f"# Where shared control pays: {task}\n\nEach method's validation success minus the better "
             "partner's alone, in points, paired per scenario (± 95% CI); **bold**: above both partners. "
-            "Machines: `recipes/map.yaml`.\n\n" + (QUICK_NOTE + "\n" if quick else "") + map_markdown(table))
+            "Machines: `recipes/map.yaml`.\n\n" + (QUICK_NOTE + "\n" if quick else "") + map_markdown(table)
+            + "\n## Each method over the cells\n\nAbove both partners: the whole 95% CI above 0; below the "
+            "better partner: the whole CI below 0.\n\n" + tally_markdown(map_tally(table)))
     for method in ("dcsc_centred", "dcsc"):
         claims = paper_claims(episodes, method)
         if len(claims):

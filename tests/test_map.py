@@ -75,6 +75,8 @@ def test_quick_map_writes_its_table_and_heatmap(tmp_path, monkeypatch):
     assert all(not math.isnan(value) for value in table["delta"])
     text = (out / "map.md").read_text()
     assert "A `--quick` run" in text and "| blind-500 | surrogate_noisy |" in text
+    tally = text.split("## Each method over the cells")[1]  # one row per method, its cells counted
+    assert "| DC-SC (centred) | 1 |" in tally and "| either partner (oracle) | 1 |" in tally
     assert (out / "fig_map.png").read_bytes()[:4] == b"\x89PNG"
     assert (out / "blind-500" / "lunarlander" / "episodes.csv").exists()
     # the assistants' inputs, made first: the expert machine (target-500 in --quick) and both copilots
