@@ -35,11 +35,11 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorSpec
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, ValueOperator
-from torchrl.objectives import A2CLoss, ClipPPOLoss, SoftUpdate, ValueEstimators
+from torchrl.objectives import A2CLoss, ClipPPOLoss, ValueEstimators
 
 from dcsc_torchrl.batched_envs import make_lunar_env
 from dcsc_torchrl.config import ConfigError, to_plain
-from dcsc_torchrl.losses import QCriticLoss
+from dcsc_torchrl.losses import ForeachSoftUpdate, QCriticLoss
 from dcsc_torchrl.networks import (
     LUNAR_QVALUE_DIMS,
     lunar_actor,
@@ -165,7 +165,7 @@ def train(cfg: DictConfig, *, resume: bool = False) -> Path:
 
     # --- the Q critic's loss, optimiser and replay buffer -------------------------------
     q_loss = QCriticLoss(qvalue, gamma=cfg.loss.gamma)
-    q_target = SoftUpdate(q_loss, tau=cfg.qcritic.tau)
+    q_target = ForeachSoftUpdate(q_loss, tau=cfg.qcritic.tau)
     q_optim = torch.optim.Adam(q_loss.parameters(), lr=cfg.qcritic.lr, foreach=True)
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.qcritic.buffer_size), batch_size=cfg.qcritic.batch_size)
 
