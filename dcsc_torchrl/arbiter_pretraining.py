@@ -37,6 +37,7 @@ from dcsc_torchrl.protocol import (
 from dcsc_torchrl.state_arbiter import (
     PretrainedArbiter,
     StateDependentArbiter,
+    authority_fit_settings,
     checked_learner_settings,
     machine_fingerprint,
     state_arbiter_critic,
@@ -173,16 +174,7 @@ def _from_constant_blends(cells: Mapping[str, ProtocolCell], seeds: SeedBlocks, 
             rows.append(_success_row(result, operator=name, beta=float(beta), first_seed=block[0],
                                      scenarios=len(block), frames=result.frames.numel()))
     frames = concat_runs(*runs)
-    update.warm_up(frames, target="return", updates=settings["critic_updates"], batch_size=settings["batch_size"],
-                   lr=settings["lr"], seed=seed)
-    flat = frames.reshape(-1)
-    generator = torch.Generator().manual_seed(seed)
-    for _ in range(settings["arbiter_updates"]):
-        index = torch.randint(flat.shape[0], (min(settings["batch_size"], flat.shape[0]),), generator=generator)
-        loss = update.theta_loss(flat[index])
-        update.theta_optim.zero_grad()
-        loss.backward()
-        update.theta_optim.step()
+    update.fit(frames, **authority_fit_settings(settings), seed=seed)
     return rows, frames
 
 

@@ -301,6 +301,22 @@ class AuthorityOnlineLearner(OnlineLearner):
                              f"got {target!r}")
         return super().warm_up(frames, target=target, **kwargs)
 
+    def fit(self, frames: TensorDictBase, *, critic_updates: int, arbiter_updates: int, batch_size: int, lr: float,
+            seed: int) -> None:
+        """The authority update offline: ``Q(s, beta)`` fitted on the recorded returns of ``frames``
+        (:meth:`warm_up`, ``critic_updates`` steps at ``lr``), then ``arbiter_updates`` steps of the
+        arbiter against it, the critic held, on minibatches of ``batch_size`` of the same frames
+        (drawn with a generator seeded by ``seed``)."""
+        self.warm_up(frames, target="return", updates=critic_updates, batch_size=batch_size, lr=lr, seed=seed)
+        flat = frames.reshape(-1)
+        generator = torch.Generator().manual_seed(seed)
+        for _ in range(arbiter_updates):
+            index = torch.randint(flat.shape[0], (min(batch_size, flat.shape[0]),), generator=generator)
+            loss = self.theta_loss(flat[index])
+            self.theta_optim.zero_grad()
+            loss.backward()
+            self.theta_optim.step()
+
 
 class PolicyGradientLearner:
     """A state-dependent arbiter learned from the shared policy's own frames (A2C, the machine frozen).

@@ -49,7 +49,7 @@ from dcsc_torchrl.online import (
     make_online_learner,
 )
 from dcsc_torchrl.policy import SharedPolicyModule, plays_operator_alone
-from dcsc_torchrl.state_arbiter import PretrainedArbiter
+from dcsc_torchrl.state_arbiter import PretrainedArbiter, authority_fit_settings
 from dcsc_torchrl.task import Task
 from dcsc_torchrl.transforms import (
     FirstEpisodeOnly,
@@ -110,6 +110,9 @@ class WarmupSettings:
     target: str = "return"
     blend_betas: Sequence[float] = ()
     """Constant betas played on :attr:`Scenarios.blend` for the warm-up (beyond the two partners alone)."""
+    refit_state_arbiter: bool = False
+    """Method ``dcsc_state`` (``authority``): refit its pretrained ``Q(s, beta)`` on the cell's own calibration
+    runs (the operator alone at beta 0, the machine alone at 1), then its arbiter against it, as in pretraining."""
 
     def __post_init__(self) -> None:
         if self.target not in WARMUP_TARGETS:
@@ -291,6 +294,8 @@ class ProtocolCell:
         self.hula_threshold: float | None = arbiter.hula_threshold
         self.uncertainty_scale = 1.0
         self.critic: torch.nn.Module | None = None  # Algorithm 1's Q after its warm-up (IDA reads it)
+        self.calibration_frames: TensorDictBase | None = None  # what the warm-up fitted the critic on
+        self.warmup: WarmupSettings | None = None
         spec_env = self.make_env([0], operator_seed=0, operator=self.machine_alone_operator)
         self.action_spec = spec_env.full_action_spec["action"]
         self.observation_size = spec_env.observation_spec["observation"].shape[-1]
@@ -414,6 +419,7 @@ class ProtocolCell:
         warm = make_online_learner(self.policy("dcsc"), copy.deepcopy(critic_net), **{**self.online, "theta_lr": 0.0})
         warm.warm_up(warm_frames, target=warmup.target, updates=warmup.updates, batch_size=warmup.batch_size,
                      lr=warmup.lr, seed=run_seed(protocol.seed, self.pretrain_seed, "operator_alone", "critic"))
+        self.calibration_frames, self.warmup = warm_frames, warmup
         calibration = {**self.base, "hula_threshold": self.hula_threshold,
                        **confidence_signal(self.uncertainty_scale, alone.frames, warm.action_gap(alone.frames),
                                            machine.lam, machine.delta2)}
@@ -445,8 +451,14 @@ class ProtocolCell:
         means: dict[str, tuple[float, float]] = {}
         for method in sorted(needed, key=METHOD_NAMES.index):
             policy = self.policy(method)
-            learners[method] = (self.state_arbiter.learner(policy) if METHODS[method].kind == "pretrained"
-                                else self.learner(policy))
+            if METHODS[method].kind == "pretrained":
+                learners[method] = self.state_arbiter.learner(policy)
+                if self.warmup is not None and self.warmup.refit_state_arbiter:
+                    learners[method].fit(self.calibration_frames, **authority_fit_settings(self.state_arbiter.settings),
+                                         seed=run_seed(self.protocol.seed, self.pretrain_seed, "operator_alone",
+                                                       "state_arbiter"))
+            else:
+                learners[method] = self.learner(policy)
             result = self.play("collaboration", method, seeds, learners[method].policy, update=learners[method])
             episodes += self.rows("collaboration", method, seeds, result)
             means[method] = (result.frames["machine_confidence"].mean().item(),
@@ -575,6 +587,8 @@ def run_cell(
             raise ValueError("method dcsc_state starts from a pretrained arbiter: pass state_arbiter "
                              "(dcsc arbiter pretrains one)")
         state_arbiter.check_evaluated_next_to(operator_name, machine_net)
+        if warmup.refit_state_arbiter:
+            state_arbiter.check_refittable()
     if "ida" in methods and online.get("theta_critic") == "authority":
         raise ValueError("method ida reads Q(s, a): it cannot run with online.theta_critic=authority, "
                          "whose critic is Q(s, beta)")

@@ -184,6 +184,13 @@ class PretrainedArbiter:
             raise ValueError(f"the state-dependent arbiter was pretrained next to machine {self.machine}, "
                              f"this machine is {fingerprint}: pretrain one next to it (dcsc arbiter)")
 
+    def check_refittable(self) -> None:
+        """Refuses a refit on a cell's calibration runs (``warmup.refit_state_arbiter``) in one line
+        unless the arbiter learns by ``authority``: the refit is of its critic ``Q(s, beta)``."""
+        if self.settings["algorithm"] != "authority":
+            raise ValueError(f"warmup.refit_state_arbiter refits the authority critic Q(s, beta): this arbiter learns "
+                             f"by {self.settings['algorithm']!r}, which has none")
+
     def learner(self, policy: SharedPolicyModule, *, copy_critic: bool = True) -> OnlineLearner | PolicyGradientLearner:
         """The learner of ``policy`` (whose arbiter a cell copies from :attr:`arbiter`) by the
         settings' ``algorithm``, with its own copy of the critic (``copy_critic``; the
@@ -199,6 +206,12 @@ class PretrainedArbiter:
         pretraining_only = ("rounds", "scenarios")
         return PolicyGradientLearner(policy, critic, **{key: settings[key] for key in LEARNER_SETTINGS["policy_gradient"]
                                                         if key not in pretraining_only})
+
+
+def authority_fit_settings(settings: Mapping[str, Any]) -> dict[str, Any]:
+    """The keywords of :meth:`~dcsc_torchrl.online.AuthorityOnlineLearner.fit` from an ``authority``
+    arbiter's settings: the same fit in pretraining and in a cell's refit on its calibration runs."""
+    return {key: settings[key] for key in ("critic_updates", "arbiter_updates", "batch_size", "lr")}
 
 
 def save_pretrained_arbiter(path: str | Path, task: Task, pretrained: PretrainedArbiter,

@@ -144,7 +144,8 @@ def state_arbiter_for(task: Task, cfg: DictConfig, operator: str,
 
     Raises:
         ConfigError: ``state.arbiters`` is not set or names a file that holds no such arbiter,
-            or no arbiter fits (one line naming each file's pool and machine).
+            or no arbiter fits (one line naming each file's pool and machine), or the one that fits
+            cannot be refitted as ``warmup.refit_state_arbiter`` asks.
     """
     paths = cfg.state.arbiters if "state" in cfg else None
     if not paths:
@@ -157,6 +158,11 @@ def state_arbiter_for(task: Task, cfg: DictConfig, operator: str,
             raise ConfigError(f"state.arbiters: no pretrained arbiter at {path}")
         pretrained = load_pretrained_arbiter(path, task)
         if operator not in pretrained.operators and fingerprint in (None, pretrained.machine):
+            if cfg.warmup.refit_state_arbiter:
+                try:
+                    pretrained.check_refittable()
+                except ValueError as err:
+                    raise ConfigError(f"{err} ({path})") from None
             return pretrained
         seen.append(f"{path}: pool {', '.join(pretrained.operators)}, machine {pretrained.machine}")
     machine = "" if fingerprint is None else f" and machine {fingerprint}"

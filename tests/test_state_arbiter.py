@@ -200,7 +200,7 @@ def test_a_cell_runs_dcsc_state_from_the_pretrained_arbiter_and_refuses_its_pool
     assert set(theta["method"]) == {"dcsc_state"} and len(theta) > 0
 
 
-def test_the_policy_gradient_algorithm_pretrains_and_fine_tunes_in_the_cell(tmp_path):
+def test_the_policy_gradient_algorithm_pretrains_and_fine_tunes_in_the_cell(tmp_path, capsys):
     out = tmp_path / "arbiter"
     assert main(["arbiter", "lunarlander", "--quick", "--out", str(out), "pretrain.shipped=true",
                  "state.algorithm=policy_gradient", "state.segment_length=20"]) == 0
@@ -215,6 +215,47 @@ def test_the_policy_gradient_algorithm_pretrains_and_fine_tunes_in_the_cell(tmp_
                  f"state.arbiters=[{out / 'arbiter.pt'}]"]) == 0
     theta = pd.read_csv(tmp_path / "lunarlander" / "theta.csv")
     assert {"loss_objective", "loss_critic"} <= set(theta.columns) and len(theta) > 0
+    capsys.readouterr()
+    assert main(["run", "lunarlander", "--quick", "--methods", "dcsc_state", "--operators", "expert",
+                 "--out", str(tmp_path / "refit"), "pretrain.shipped=true", "pretrain.seeds=[0]",
+                 f"state.arbiters=[{out / 'arbiter.pt'}]", "warmup.refit_state_arbiter=true"]) == 2
+    err = capsys.readouterr().err
+    assert "warmup.refit_state_arbiter refits the authority critic Q(s, beta): this arbiter learns by " \
+           "'policy_gradient'" in err and err.count("\n") == 1
+
+
+def test_a_cell_refits_the_authority_critic_on_its_own_calibration_runs(pretrained):
+    """With ``warmup.refit_state_arbiter`` the cell's copy of Q(s, beta) fits the returns of its own
+    calibration runs (the operator alone at beta 0, the machine alone at 1) better than the
+    pretrained one, and the pretrained arbiter itself is left as it was."""
+    from dcsc_torchrl.online import returns_to_go
+    from dcsc_torchrl.protocol import ProtocolCell
+    from dcsc_torchrl.recipes.grid import checked_grid
+    from dcsc_torchrl.recipes.settings import cell_settings
+
+    cfg = checked_grid("lunarlander", quick=True, overrides=["pretrain.shipped=true", "pretrain.seeds=[0]",
+                                                             "warmup.refit_state_arbiter=true"],
+                       operators=["expert"], option="operators").cfg
+    settings = cell_settings(cfg)
+    machine, critic = shipped_machine(LUNAR, "target")
+    state = load_pretrained_arbiter(pretrained / "arbiter.pt", LUNAR)
+    before = copy.deepcopy(state.arbiter.state_dict())
+    cell = ProtocolCell(LUNAR, LUNAR.make_operator("expert"), machine, base={}, pretrain_seed=0,
+                        human=settings["human"], machine=settings["machine"], arbiter=settings["arbiter"],
+                        online=settings["online"], protocol=settings["protocol"], state_arbiter=state)
+    cell.calibrate(settings["scenarios"], critic, settings["warmup"])
+    _, learners, _ = cell.collaborate(settings["scenarios"].collaboration, ["dcsc_state"])
+    frames = cell.calibration_frames.reshape(-1)
+    returns = returns_to_go(frames, learners["dcsc_state"].gamma)
+    unrefitted = state.learner(shared_policy(copy.deepcopy(state.arbiter)))
+
+    def error(learner) -> float:
+        with torch.no_grad():
+            return (learner.taken_value(frames) - returns).pow(2).mean().item()
+
+    assert error(learners["dcsc_state"]) < error(unrefitted)
+    assert all(torch.equal(value, before[key]) for key, value in state.arbiter.state_dict().items()
+               if isinstance(value, torch.Tensor))
 
 
 @pytest.mark.parametrize(("argv", "line"), [
