@@ -110,7 +110,7 @@ class WarmupSettings:
     target: str = "return"
     blend_betas: Sequence[float] = ()
     """Constant betas played on :attr:`Scenarios.blend` for the warm-up (beyond the two partners alone)."""
-    refit_state_arbiter: bool = False
+    refit_state_arbiter: bool = True
     """Method ``dcsc_state`` (``authority``): refit its pretrained ``Q(s, beta)`` on the cell's own calibration
     runs (the operator alone at beta 0, the machine alone at 1), then its arbiter against it, as in pretraining."""
 

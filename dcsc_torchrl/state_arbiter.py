@@ -189,7 +189,7 @@ class PretrainedArbiter:
         unless the arbiter learns by ``authority``: the refit is of its critic ``Q(s, beta)``."""
         if self.settings["algorithm"] != "authority":
             raise ValueError(f"warmup.refit_state_arbiter refits the authority critic Q(s, beta): this arbiter learns "
-                             f"by {self.settings['algorithm']!r}, which has none")
+                             f"by {self.settings['algorithm']!r}, which has none (set warmup.refit_state_arbiter=false)")
 
     def learner(self, policy: SharedPolicyModule, *, copy_critic: bool = True) -> OnlineLearner | PolicyGradientLearner:
         """The learner of ``policy`` (whose arbiter a cell copies from :attr:`arbiter`) by the

@@ -212,13 +212,13 @@ def test_the_policy_gradient_algorithm_pretrains_and_fine_tunes_in_the_cell(tmp_
     assert isinstance(learner, PolicyGradientLearner) and learner.segment_length == 20
     assert main(["run", "lunarlander", "--quick", "--methods", "operator", "dcsc_state", "--operators", "expert",
                  "--out", str(tmp_path), "pretrain.shipped=true", "pretrain.seeds=[0]",
-                 f"state.arbiters=[{out / 'arbiter.pt'}]"]) == 0
+                 f"state.arbiters=[{out / 'arbiter.pt'}]", "warmup.refit_state_arbiter=false"]) == 0
     theta = pd.read_csv(tmp_path / "lunarlander" / "theta.csv")
     assert {"loss_objective", "loss_critic"} <= set(theta.columns) and len(theta) > 0
     capsys.readouterr()
     assert main(["run", "lunarlander", "--quick", "--methods", "dcsc_state", "--operators", "expert",
                  "--out", str(tmp_path / "refit"), "pretrain.shipped=true", "pretrain.seeds=[0]",
-                 f"state.arbiters=[{out / 'arbiter.pt'}]", "warmup.refit_state_arbiter=true"]) == 2
+                 f"state.arbiters=[{out / 'arbiter.pt'}]"]) == 2  # the refit is the default
     err = capsys.readouterr().err
     assert "warmup.refit_state_arbiter refits the authority critic Q(s, beta): this arbiter learns by " \
            "'policy_gradient'" in err and err.count("\n") == 1
@@ -233,9 +233,9 @@ def test_a_cell_refits_the_authority_critic_on_its_own_calibration_runs(pretrain
     from dcsc_torchrl.recipes.grid import checked_grid
     from dcsc_torchrl.recipes.settings import cell_settings
 
-    cfg = checked_grid("lunarlander", quick=True, overrides=["pretrain.shipped=true", "pretrain.seeds=[0]",
-                                                             "warmup.refit_state_arbiter=true"],
+    cfg = checked_grid("lunarlander", quick=True, overrides=["pretrain.shipped=true", "pretrain.seeds=[0]"],
                        operators=["expert"], option="operators").cfg
+    assert cfg.warmup.refit_state_arbiter  # the default
     settings = cell_settings(cfg)
     machine, critic = shipped_machine(LUNAR, "target")
     state = load_pretrained_arbiter(pretrained / "arbiter.pt", LUNAR)
