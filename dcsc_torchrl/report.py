@@ -567,6 +567,9 @@ def write_task_figures(results_dir: str | os.PathLike, task: Task, main_operator
         plot_authority(trace, task, results_dir / "fig_actions.png", f"{name}: machine / operator / shared actions"),
         plot_reward_over_time(trace, task, results_dir / "fig_reward.png", f"{name}: reward over time, scenario 0"),
     ]
+    if "dcsc_state" in set(trace["method"]):  # the state-dependent arbiter's own episode: beta frame by frame
+        paths.append(plot_confidence(trace, task, results_dir / "fig_confidence_state.png",
+                                     f"{name}: confidence and authority", method="dcsc_state"))
     if len(constant_sweep(episodes)):  # the validation sweep (calibration blends are constants too)
         paths.append(plot_constant_sweep(episodes, task, results_dir / "fig_constant_beta.png",
                                          f"{name}: success against a constant β (validation)"))

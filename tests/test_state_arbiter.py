@@ -198,6 +198,7 @@ def test_a_cell_runs_dcsc_state_from_the_pretrained_arbiter_and_refuses_its_pool
     assert set(episodes.query("phase == 'collaboration'")["method"]) == {"dcsc_state"}
     theta = pd.read_csv(tmp_path / "lunarlander" / "theta.csv")
     assert set(theta["method"]) == {"dcsc_state"} and len(theta) > 0
+    assert (tmp_path / "lunarlander" / "fig_confidence_state.png").read_bytes()[:4] == b"\x89PNG"  # its traced episode
 
 
 def test_the_policy_gradient_algorithm_pretrains_and_fine_tunes_in_the_cell(tmp_path, capsys):
