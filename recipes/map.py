@@ -118,7 +118,8 @@ def ready_assistants(cfg: DictConfig, *, quick: bool, workers: int = 1) -> list[
     """The protocol settings of the assistants the map's methods read, made when missing
     (``workers`` at a time, each in its own process when more than one): ``ida.expert``
     (machine ``expert``'s seed-0 checkpoint, pretrained), ``reddy.copilots`` (trained) and
-    ``state.arbiters`` (pretrained next to every selected machine, after the machines)."""
+    the arbiters of :func:`machine_arbiters` (pretrained next to every selected machine, after the
+    machines; each machine's grid names its own, :func:`machine_grids`)."""
     jobs, settings, machines = [], [], {}
     if "ida_expert" in cfg.methods:
         machines[cfg.expert] = checkpoint_path(Path(cfg.pretrain_dir).resolve() / cfg.expert, 0)
@@ -138,17 +139,17 @@ def ready_assistants(cfg: DictConfig, *, quick: bool, workers: int = 1) -> list[
         settings.append(f"reddy.copilots=[{','.join(paths)}]")
     _run_jobs(jobs, workers)
     if "dcsc_state" in cfg.methods:  # next to the machines, which exist now
-        jobs, paths = [], []
-        for machine in cfg.selected:
-            for name, pool in arbiter_pools(cfg).items():
-                folder = (Path(cfg.pretrain_dir) / machine / f"arbiter-{name}").resolve()
-                if not (folder / "arbiter.pt").is_file():
-                    jobs.append(partial(_pretrain_arbiter, cfg.task, machine_overrides(cfg, machine), list(pool),
-                                        folder, quick))
-                paths.append(str(folder / "arbiter.pt"))
-        _run_jobs(jobs, workers)
-        settings.append(f"state.arbiters=[{','.join(paths)}]")
+        _run_jobs([partial(_pretrain_arbiter, cfg.task, machine_overrides(cfg, machine), pool, path.parent, quick)
+                   for machine in cfg.selected for path, pool in machine_arbiters(cfg, machine).items()
+                   if not path.is_file()], workers)
     return settings
+
+
+def machine_arbiters(cfg: DictConfig, machine: str) -> dict[Path, list[str]]:
+    """``dcsc_state``'s arbiters next to ``machine``: each file (``{pretrain_dir}/<machine>/arbiter-<pool
+    name>/arbiter.pt``) and the pool it is pretrained with (:func:`arbiter_pools`)."""
+    return {(Path(cfg.pretrain_dir) / machine / f"arbiter-{name}").resolve() / "arbiter.pt": pool
+            for name, pool in arbiter_pools(cfg).items()}
 
 
 def machine_overrides(cfg: DictConfig, name: str) -> list[str]:
@@ -163,11 +164,14 @@ def machine_overrides(cfg: DictConfig, name: str) -> list[str]:
 
 
 def machine_grids(cfg: DictConfig, *, quick: bool) -> dict[str, TaskGrid]:
-    """Every selected machine's grid (the task's protocol config, checked whole, before any cell runs)."""
+    """Every selected machine's grid (the task's protocol config, checked whole, before any cell runs),
+    with ``dcsc_state``'s arbiters of that machine alone (so a map of fewer machines resumes)."""
     grids = {}
     for name in cfg.selected:
+        arbiters = ([f"state.arbiters=[{','.join(map(str, machine_arbiters(cfg, name)))}]"]
+                    if "dcsc_state" in cfg.methods else [])
         try:
-            grids[name] = checked_grid(cfg.task, quick=quick, overrides=machine_overrides(cfg, name),
+            grids[name] = checked_grid(cfg.task, quick=quick, overrides=[*machine_overrides(cfg, name), *arbiters],
                                        operators=cfg.operators, option="operators")
         except ConfigError as err:
             raise ConfigError(f"machines.{name}: {err}") from None

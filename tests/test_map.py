@@ -95,6 +95,11 @@ def test_leave_one_out_pretrains_one_arbiter_per_operator_without_it(capsys):
     assert arbiter_pools(cfg) == {"without-expert": ["noisy", "surrogate_laggy"],
                                   "without-noisy": ["expert", "surrogate_laggy"],
                                   "without-surrogate_laggy": ["expert", "noisy"]}
+    from dcsc_torchrl.recipes.map import machine_arbiters
+
+    files = machine_arbiters(map_config(), "blind-500")  # each machine's own two, named in its grid alone
+    assert [(path.parent.name, path.parent.parent.name) for path in files] == [
+        ("arbiter-surrogates", "blind-500"), ("arbiter-humanlike", "blind-500")]
     assert arbiter_pools(map_config())["surrogates"] == [
         "surrogate_expert", "surrogate_noisy", "surrogate_laggy"]
     assert main(["map", "operators=[expert]", "methods=[operator,dcsc_state]", "arbiters_leave_one_out=true"]) == 2
