@@ -454,6 +454,7 @@ class ProtocolCell:
             if METHODS[method].kind == "pretrained":
                 learners[method] = self.state_arbiter.learner(policy)
                 if self.warmup is not None and self.warmup.refit_state_arbiter:
+                    self.state_arbiter.check_refittable()
                     learners[method].fit(self.calibration_frames, **authority_fit_settings(self.state_arbiter.settings),
                                          seed=run_seed(self.protocol.seed, self.pretrain_seed, "operator_alone",
                                                        "state_arbiter"))
