@@ -90,29 +90,38 @@ def test_the_recorded_command_rederives_the_shipped_weights(name, observes, tmp_
             torch.testing.assert_close(retrained[module][key], value, rtol=0, atol=0, msg=f"{module}.{key}")
 
 
-def test_the_shipped_arbiter_was_pretrained_next_to_the_shipped_machine_against_the_default_pool():
-    task = get_task("lunarlander")
-    path = shipped_arbiter_path(task, "target")
+SHIPPED_ARBITERS = [("lunarlander", "target", "dcsc arbiter lunarlander pretrain.shipped=true pretrain.observes=target"),
+                    ("uav", None, "dcsc arbiter uav pretrain.shipped=true")]
+"""Each shipped arbiter: its task, the view of the shipped machine beside it, its recorded command."""
+
+
+@pytest.mark.parametrize(("name", "observes", "command"), SHIPPED_ARBITERS)
+def test_the_shipped_arbiter_was_pretrained_next_to_the_shipped_machine_against_the_default_pool(name, observes,
+                                                                                                command):
+    task = get_task(name)
+    path = shipped_arbiter_path(task, observes)
     assert path.stat().st_size < 200_000
     data = load_checkpoint(path, task=state_arbiter_task(task))
-    assert data["command"] == "dcsc arbiter lunarlander pretrain.shipped=true pretrain.observes=target"
+    assert data["command"] == command
     assert (path.parent / "README.md").read_text().count(f"`{data['command']}`") == 1
     pretrained = load_pretrained_arbiter(path, task)
-    machine, _ = shipped_machine(task, "target")
+    machine, _ = shipped_machine(task, observes)
     assert pretrained.machine == machine_fingerprint(machine)
-    protocol = load_config(CONFIGS["lunarlander"].protocol)
+    protocol = load_config(CONFIGS[name].protocol)
     assert list(pretrained.operators) == list(protocol.state.pool)
     assert data["config"]["state"] == dict(protocol.state) | {"arbiters": None}  # the yaml's settings, untuned
     pretrained.check_evaluated_next_to("expert", machine)  # a human-like cell may run it
     with pytest.raises(ValueError, match="surrogate_noisy"):
         pretrained.check_evaluated_next_to("surrogate_noisy", machine)
-    assert load_play_arbiter(None, protocol).machine == pretrained.machine  # dcsc play --assist state's default
+    if name == "lunarlander":
+        assert load_play_arbiter(None, protocol).machine == pretrained.machine  # dcsc play --assist state's default
 
 
 @pytest.mark.slow
-def test_the_recorded_command_rederives_the_shipped_arbiter(tmp_path):
-    task = get_task("lunarlander")
-    shipped = load_checkpoint(shipped_arbiter_path(task, "target"), task=state_arbiter_task(task))
+@pytest.mark.parametrize(("name", "observes", "command"), SHIPPED_ARBITERS)
+def test_the_recorded_command_rederives_the_shipped_arbiter(tmp_path, name, observes, command):
+    task = get_task(name)
+    shipped = load_checkpoint(shipped_arbiter_path(task, observes), task=state_arbiter_task(task))
     command = shipped["command"].split()
     assert main([*command[1:], "--out", str(tmp_path)]) == 0
     again = load_checkpoint(tmp_path / "arbiter.pt", task=state_arbiter_task(task))
