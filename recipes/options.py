@@ -110,8 +110,9 @@ def _add_training_options(parser: argparse.ArgumentParser, *, out: str, example:
 def add_recipe_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of a pretraining recipe: ``[--quick] [--resume] [--out DIR] [key=value ...]``."""
     return _add_training_options(
-        parser, out="run directory (default: <pretrain.out_dir>/seed<seed>/ of the task's protocol yaml, where "
-                    "dcsc run reads this seed's machine)", example="optim.lr=1e-3 train.episodes=100")
+        parser, out="run directory (default: logger.out_dir=... when given, else <pretrain.out_dir>/seed<seed>/ "
+                    "of the task's protocol yaml, where dcsc run reads this seed's machine)",
+        example="optim.lr=1e-3 train.episodes=100")
 
 
 def add_copilot_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:

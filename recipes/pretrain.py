@@ -24,12 +24,14 @@ Train = Callable[..., Path]
 
 def pretrain_run_config(task_name: str, overrides: Sequence[str] = (), *, quick: bool = False,
                         out: Path | None = None) -> DictConfig:
-    """The pretraining config of ``task_name`` with ``overrides``, checked, writing to ``out`` or by
-    default to ``<pretrain.out_dir>/seed<seed>/`` of the task's protocol yaml (same ``--quick``)."""
+    """The pretraining config of ``task_name`` with ``overrides``, checked, writing to ``out``, else to a
+    ``logger.out_dir=`` of ``overrides``, else to ``<pretrain.out_dir>/seed<seed>/`` of the task's
+    protocol yaml (same ``--quick``), where ``dcsc run`` reads the seed's machine."""
     configs = CONFIGS[task_name]
     cfg = load_config(configs.pretrain, overrides, quick=quick)
-    protocol = load_config(configs.protocol, quick=quick)
-    cfg.logger.out_dir = str(writable_folder(out or checkpoint_path(protocol.pretrain.out_dir, cfg.seed).parent))
+    if out is None and not any(item.partition("=")[0] == "logger.out_dir" for item in overrides):
+        out = checkpoint_path(load_config(configs.protocol, quick=quick).pretrain.out_dir, cfg.seed).parent
+    cfg.logger.out_dir = str(writable_folder(out or cfg.logger.out_dir))
     return cfg
 
 

@@ -430,6 +430,14 @@ def test_dcsc_pretrain_writes_where_dcsc_run_reads(quick, monkeypatch, capsys):
     assert f"checkpoint in {expected}" in capsys.readouterr().err
 
 
+def test_dcsc_pretrain_honours_a_logger_out_dir_override_and_out_before_it(tmp_path, monkeypatch):
+    seen = []
+    monkeypatch.setitem(machines.PRETRAINING, "uav", lambda cfg, *, resume=False: seen.append(cfg.logger.out_dir))
+    assert main(["pretrain", "uav", "--quick", f"logger.out_dir={tmp_path / 'mine'}"]) == 0
+    assert main(["pretrain", "uav", "--quick", "--out", str(tmp_path / "out"), f"logger.out_dir={tmp_path / 'mine'}"]) == 0
+    assert seen == [str(tmp_path / "mine"), str(tmp_path / "out")]
+
+
 def test_debug_shows_the_real_exception_and_a_bug_is_one_line_exit_1(monkeypatch, capsys):
     with pytest.raises(ConfigError, match="train.episodez"):
         main(["--debug", "pretrain", "lunarlander", "train.episodez=5"])
