@@ -201,7 +201,7 @@ NULLABLE: dict[str, Any] = {
 example value: an override of it is checked as one of a key with that value in the yaml would be."""
 
 NON_EMPTY = frozenset({"pretrain.seeds", "operator.presets", "tasks", "operators", "pretrain_seeds", "methods", "pool",
-                       "alpha.grid", "state.pool", "state.betas"})
+                       "alpha.grid", "state.pool", "state.betas", "selected"})
 """Lists that need an entry (``null`` passes where it is the default)."""
 
 DISTINCT = frozenset({"pretrain.seeds", "operator.presets", "arbiter.constant_betas", "warmup.blend_betas", "tasks",

@@ -66,6 +66,8 @@ def map_config(overrides: Sequence[str] = (), *, quick: bool = False) -> DictCon
     check_names("expert", "machine", [cfg.expert], list(cfg.machines))
     for group in ("copilots", "arbiters"):
         for name, pool in cfg[group].items():
+            if not pool:
+                raise ConfigError(f"{group}.{name}: expected at least one operator preset, got {list(pool)}")
             check_names(f"{group}.{name}", "operator preset", list(pool), list(PRESETS))
     if "dcsc_state" in cfg.methods and cfg.arbiters_leave_one_out and len(cfg.operators) < 2:
         raise ConfigError(f"arbiters_leave_one_out: an arbiter pretrained without the cell's operator needs another "

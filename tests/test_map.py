@@ -60,6 +60,10 @@ def test_a_map_naming_an_unknown_machine_is_refused_at_the_door(tmp_path, capsys
     assert "selected: unknown machine 'nowhere'" in capsys.readouterr().err
     assert main(["map", "--out", str(tmp_path / "m"), "machines.blind-500.observes=pad"]) == 2
     assert "machines.blind-500: pretrain.observes: unknown machine view 'pad'" in capsys.readouterr().err
+    assert main(["map", "--out", str(tmp_path / "m"), "selected=[]"]) == 2  # no machine: not a StopIteration later
+    assert "selected: expected at least one entry, got []" in capsys.readouterr().err
+    assert main(["map", "--out", str(tmp_path / "m"), "arbiters.surrogates=[]"]) == 2
+    assert "arbiters.surrogates: expected at least one operator preset, got []" in capsys.readouterr().err
     assert not (tmp_path / "m").exists() or not any((tmp_path / "m").iterdir())
 
 
