@@ -27,6 +27,7 @@ from dcsc_torchrl.config import (
 )
 from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.methods import task_methods
+from dcsc_torchrl.networks import machine_from_checkpoint
 from dcsc_torchrl.protocol import (
     run_cell,
 )
@@ -35,12 +36,14 @@ from dcsc_torchrl.recipes.machines import (
     copilot_for,
     expert_q,
     load_machine_checkpoint,
+    machine_checkpoint,
     pretrained_machine,
     state_arbiter_for,
 )
 from dcsc_torchrl.recipes.settings import cell_settings, check_names, task_config
 from dcsc_torchrl.report import write_task_figures, write_task_summary
 from dcsc_torchrl.runlog import Progress, write_atomic
+from dcsc_torchrl.state_arbiter import machine_fingerprint
 from dcsc_torchrl.tasks import get_task
 
 
@@ -139,10 +142,41 @@ def write_cell(cell: Cell, cfg: DictConfig, methods: tuple[str, ...], out: Path,
         else:
             (directory / f"{name}.csv").unlink(missing_ok=True)
     record = {"task": cell.task, "operator": cell.operator, "pretrain_seed": cell.pretrain_seed,
-              "methods": list(methods), "seconds": time.perf_counter() - start,
+              "machine": machine_fingerprint(machine), "methods": list(methods), "seconds": time.perf_counter() - start,
               "hula_threshold": result.hula_threshold, **(info or {})}
     write_atomic(directory / "cell.json", lambda f: f.write(json.dumps(record, indent=2)))  # last: the cell is done
     return record
+
+
+def check_one_machine_per_seed(out: Path, grid: TaskGrid, *, against_checkpoints: bool = True) -> None:
+    """Refuses a results folder where the done cells of one pretraining seed ran next to two
+    machines, or (``against_checkpoints``) next to another machine than the seed's checkpoint
+    holds now, pretrained again since: gathered, one table would mix two machines' rows.
+
+    Each cell's ``cell.json`` records its machine (:func:`machine_fingerprint`); cells written
+    before it did are not checked.
+
+    Raises:
+        ConfigError: naming the cells, the machines and the checkpoint.
+    """
+    task = get_task(grid.task)
+    for seed in dict.fromkeys(cell.pretrain_seed for cell in grid.cells):
+        ran: dict[str, list[str]] = {}  # machine -> the done cells that ran next to it
+        for cell in grid.cells:
+            if cell.pretrain_seed == seed and cell.done(out):
+                machine = json.loads((cell.directory(out) / "cell.json").read_text()).get("machine")
+                if machine is not None:
+                    ran.setdefault(machine, []).append(cell.name)
+        path = machine_checkpoint(task, grid.cfg, seed)
+        cells = "; ".join(f"{', '.join(names)} next to machine {machine}" for machine, names in ran.items())
+        if len(ran) > 1:
+            raise ConfigError(f"{out / grid.task}: the cells of pretraining seed {seed} ran next to different "
+                              f"machines ({cells}): pass --fresh to run them all next to {path}")
+        if ran and against_checkpoints and path.exists():
+            now = machine_fingerprint(machine_from_checkpoint(load_machine_checkpoint(task, grid.cfg, path), task)[0])
+            if now not in ran:
+                raise ConfigError(f"{out / grid.task}: {cells}, but {path} now holds machine {now} (pretrained "
+                                  "again since?): pass --fresh to run every cell next to it, or choose another --out")
 
 
 def failed_section(failed: Sequence[dict[str, Any]]) -> str:
@@ -157,7 +191,11 @@ def failed_section(failed: Sequence[dict[str, Any]]) -> str:
 
 
 def gather(out: Path, grid: TaskGrid, failed: Sequence[dict[str, Any]] = ()) -> Path:
-    """The done cells' rows into ``out/<task>/``'s CSVs, ``summary.md`` and figures; the failures reported."""
+    """The done cells' rows into ``out/<task>/``'s CSVs, ``summary.md`` and figures; the failures reported.
+
+    Refused (:func:`check_one_machine_per_seed`) when the cells of a pretraining seed ran next to
+    two machines: a missing checkpoint pretrained again may be another machine (another host)."""
+    check_one_machine_per_seed(out, grid, against_checkpoints=False)
     task_dir = out / grid.task
     task_dir.mkdir(parents=True, exist_ok=True)
     done = [cell for cell in grid.cells if cell.done(out)]
@@ -247,7 +285,8 @@ def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], exe
     reported. A grid that runs ``ida_expert`` loads its expert first (:func:`expert_q`), one that
     runs ``reddy`` each cell's copilot (:func:`copilot_for`), one that runs ``dcsc_state`` each
     cell's pretrained arbiter (:func:`state_arbiter_for`; its machine is checked in the cell): a
-    missing one is refused before any cell runs."""
+    missing one is refused before any cell runs, as is a folder whose done cells ran next to
+    another machine than their seed's checkpoint holds now (:func:`check_one_machine_per_seed`)."""
     for grid in grids:
         writable_folder(out / grid.task)
         grid_methods = task_methods(get_task(grid.task), methods)
@@ -264,6 +303,7 @@ def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], exe
             locks.enter_context(folder_lock(out / grid.task))
         for grid in grids:
             prepare_results(out / grid.task, run_record(grid, methods), fresh=fresh)
+            check_one_machine_per_seed(out, grid)
         cells = [cell for grid in grids for cell in grid.cells]
         todo = [cell for cell in cells if not cell.done(out)]
         ran, failed = executor(out, grids, todo, methods, quick=quick) if todo else ([], [])

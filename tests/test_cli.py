@@ -9,8 +9,10 @@ untrained network written as a checkpoint.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import shutil
 import signal
 import stat
 import subprocess
@@ -308,6 +310,25 @@ def test_a_run_killed_after_its_first_cell_resumes_to_the_same_csvs(full_run, ma
     for name in ("episodes.csv", "trace.csv", "theta.csv"):
         assert (task_dir / name).read_bytes() == (full_run / name).read_bytes(), name
     assert not list(task_dir.rglob("*.tmp"))
+
+
+def test_a_run_resumed_next_to_a_machine_pretrained_again_is_refused(full_run, machine_dir, tmp_path, capsys):
+    machine = tmp_path / "machine"
+    shutil.copytree(machine_dir, machine)
+    assert main([*run_argv(tmp_path, machine), "--operators", "expert"]) == 0
+    data = torch.load(checkpoint_path(machine, 0), weights_only=False)
+    data["state"]["actor"] = {k: v + 0.01 for k, v in data["state"]["actor"].items()}  # "pretrained again"
+    torch.save(data, checkpoint_path(machine, 0))
+    assert main(run_argv(tmp_path, machine)) == 2
+    err = capsys.readouterr().err
+    assert "expert-seed0 next to machine" in err and "pretrained again since?" in err and "--fresh" in err
+    assert not (tmp_path / "lunarlander" / "cells" / "noisy-seed0").exists()  # refused before any cell ran
+    cell = json.loads((tmp_path / "lunarlander" / "cells" / "expert-seed0" / "cell.json").read_text())
+    cell["machine"] = "0123456789abcdef"  # two cells of one seed next to two machines: not gathered
+    shutil.copytree(tmp_path / "lunarlander" / "cells" / "expert-seed0", tmp_path / "lunarlander" / "cells" / "noisy-seed0")
+    (tmp_path / "lunarlander" / "cells" / "noisy-seed0" / "cell.json").write_text(json.dumps(cell))
+    with pytest.raises(ConfigError, match="ran next to different machines"):
+        grid.gather(tmp_path, grid.checked_grid("lunarlander", quick=True, overrides=[f"pretrain.out_dir={machine}"]))
 
 
 def test_a_finished_run_run_again_runs_no_cell(full_run, machine_dir, monkeypatch):
