@@ -99,6 +99,8 @@ def prepare_results(task_dir: Path, record: Mapping[str, Any], *, fresh: bool) -
     if not fresh and record_path.exists():
         old = _comparable(yaml.safe_load(record_path.read_text()) or {})
         new = _comparable(record)
+        if "files" not in old:  # a record written before it kept the assistants' files
+            new.pop("files", None)
         if set(old.get("cells", [])) <= set(new["cells"]):
             old["cells"] = new["cells"]  # a grown grid: the cells done stay valid
         changed = config_diff(old, new)

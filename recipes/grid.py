@@ -6,6 +6,7 @@ gathered into the task's tables, summary and figures; the executors that run the
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import sys
 import time
@@ -225,14 +226,32 @@ def gather(out: Path, grid: TaskGrid, failed: Sequence[dict[str, Any]] = ()) -> 
     return summary
 
 
+ASSISTANT_FILES = {"ida_expert": ("ida", "expert"), "reddy": ("reddy", "copilots"), "dcsc_state": ("state", "arbiters")}
+"""The config key naming the files each method reads beside the machine (an expert's Q, copilots, arbiters)."""
+
+
+def assistant_files(grid: TaskGrid, methods: Sequence[str]) -> dict[str, str]:
+    """A hash of each file the grid's methods read beside the machine (:data:`ASSISTANT_FILES`),
+    by path: the files must exist (:func:`run_grid` loads them first)."""
+    paths: list[str] = []
+    for method in task_methods(get_task(grid.task), methods):
+        if method in ASSISTANT_FILES:
+            group, key = ASSISTANT_FILES[method]
+            named = grid.cfg[group][key]
+            paths += [named] if isinstance(named, str) else list(named)
+    return {path: hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16] for path in paths}
+
+
 def run_record(grid: TaskGrid, methods: Sequence[str]) -> dict[str, Any]:
     """What the results of ``grid`` depend on: its config (but ``threads``; ``pretrain.out_dir`` as
-    the command gave it), methods and cells; and whether it is a ``--quick`` run (for the summary)."""
+    the command gave it), methods and cells, the files its methods read beside the machines
+    (:func:`assistant_files`: a copilot trained again is another config); and whether it is a
+    ``--quick`` run (for the summary)."""
     config = to_plain(grid.cfg)
     config.pop("threads", None)
     config["pretrain"]["out_dir"] = grid.pretrain_out_dir
     return {"config": config, "methods": list(methods), "cells": [cell.name for cell in grid.cells],
-            "quick": grid.quick}
+            "files": assistant_files(grid, methods), "quick": grid.quick}
 
 
 @dataclass

@@ -331,6 +331,19 @@ def test_a_run_resumed_next_to_a_machine_pretrained_again_is_refused(full_run, m
         grid.gather(tmp_path, grid.checked_grid("lunarlander", quick=True, overrides=[f"pretrain.out_dir={machine}"]))
 
 
+def test_a_run_resumed_with_an_assistant_trained_again_is_refused(machine_dir, tmp_path, capsys):
+    expert = tmp_path / "expert.pt"
+    shutil.copy(checkpoint_path(machine_dir, 0), expert)
+    argv = ["run", "lunarlander", "--quick", "--methods", "machine", "ida_expert", "--out", str(tmp_path),
+            f"pretrain.out_dir={machine_dir}", f"ida.expert={expert}", *TINY]
+    assert main([*argv, "--operators", "expert"]) == 0
+    data = torch.load(expert, weights_only=False)
+    data["state"]["qvalue"] = {k: v + 0.01 for k, v in data["state"]["qvalue"].items()}  # "trained again"
+    torch.save(data, expert)
+    assert main(argv) == 2
+    assert f"holds results of another config (files.{expert}:" in capsys.readouterr().err
+
+
 def test_a_finished_run_run_again_runs_no_cell(full_run, machine_dir, monkeypatch):
     monkeypatch.setattr(grid, "run_cell", lambda *a, **k: pytest.fail("a finished cell ran again"))
     episodes = (full_run / "episodes.csv").read_bytes()
