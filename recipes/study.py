@@ -68,6 +68,7 @@ from dcsc_torchrl.report import (
     write_task_summary,
 )
 from dcsc_torchrl.runlog import write_atomic
+from dcsc_torchrl.state_arbiter import machine_fingerprint
 from dcsc_torchrl.task import Task
 from dcsc_torchrl.transforms import HumanOperator
 
@@ -188,6 +189,7 @@ class Study:
                  machine: torch.nn.Module, critic: torch.nn.Module) -> None:
         self.task, self.cfg, self.participant, self.folder, self.person = task, cfg, participant, folder, person
         self.critic_net = critic
+        self.machine_hash = machine_fingerprint(machine)
         settings = cell_settings(cfg)
         self.scenarios: Scenarios = settings["scenarios"]
         self.warmup = settings["warmup"]
@@ -204,15 +206,19 @@ class Study:
 
     # -- the files ---------------------------------------------------------------------
     def record(self) -> dict[str, Any]:
-        """What ``study.json`` holds: the participant, the plan and the config."""
+        """What ``study.json`` holds: the participant, the plan, the config and the machine (a hash of its weights)."""
         return {"task": self.task.name, "participant": self.participant,
-                "plan": [entry.name(k) for k, entry in enumerate(self.plan)], "config": to_plain(self.cfg)}
+                "plan": [entry.name(k) for k, entry in enumerate(self.plan)], "config": to_plain(self.cfg),
+                "machine": self.machine_hash}
 
     def claim(self) -> None:
         """Writes ``study.json``, or refuses a folder whose record holds another plan or config."""
         path = self.folder / RECORD
         if path.exists():
-            changed = config_diff(json.loads(path.read_text()), json.loads(json.dumps(self.record())))
+            old, new = json.loads(path.read_text()), json.loads(json.dumps(self.record()))
+            if "machine" not in old:  # a study begun before the record kept its machine
+                new.pop("machine")
+            changed = config_diff(old, new)
             if changed:
                 raise ConfigError(f"{self.folder} holds a study of another plan or config ({'; '.join(changed[:5])}): "
                                   "resume it with the same command, or choose another --participant or --out")

@@ -26,7 +26,7 @@ from dcsc_torchrl.recipes.study import (
     study_plan,
     validation_order,
 )
-from dcsc_torchrl.shipped import shipped_machine
+from dcsc_torchrl.shipped import shipped_machine, shipped_path
 from dcsc_torchrl.tasks import get_task
 
 SHIPPED = ["pretrain.shipped=true", "pretrain.seeds=[0]"]
@@ -224,6 +224,20 @@ def test_a_folder_of_another_config_is_refused(tmp_path, monkeypatch):
     study("lunarlander", tmp_path, ScriptedParticipant(keys, quit_after=5))
     with pytest.raises(ConfigError, match="scenarios.validation_scenarios"):
         study("lunarlander", tmp_path, ScriptedParticipant(keys), overrides=["scenarios.validation_scenarios=3"])
+
+
+def test_a_study_resumed_next_to_another_machine_is_refused(tmp_path, monkeypatch):
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    keys = PEOPLE["lunarlander"][1]
+    study("lunarlander", tmp_path, ScriptedParticipant(keys, quit_after=5))
+    other = tmp_path / "other.pt"
+    data = torch.load(shipped_path(get_task("lunarlander"), "target"), weights_only=False)
+    data["state"]["actor"] = {k: v + 0.01 for k, v in data["state"]["actor"].items()}
+    torch.save(data, other)
+    make, _ = PEOPLE["lunarlander"]
+    with pytest.raises(ConfigError, match="holds a study of another plan or config \\(machine: "):
+        run_study(get_task("lunarlander"), "p1", out=tmp_path, quick=True, person=make(ScriptedParticipant(keys)),
+                  overrides=[*SHIPPED, *SMALL], checkpoint=other)
 
 
 def test_command_line_errors_are_one_line(tmp_path, capsys):
