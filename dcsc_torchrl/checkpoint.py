@@ -132,6 +132,10 @@ def save_checkpoint(path: str | os.PathLike, *, task: str, payload: Mapping[str,
     return path
 
 
+_REMEDY = "a run's own file: delete it and run its command again (a pretraining run pretrains it); else name another file"
+"""What to do with a checkpoint that cannot be read: it may be a run's (a machine, a copilot, an arbiter) or a
+file the user named by mistake, which deleting would not mend."""
+
 def load_checkpoint(path: str | os.PathLike, *, task: str | None, modules: Sequence[str] = ()) -> dict[str, Any]:
     """Reads a checkpoint with ``weights_only=True`` and checks it is one of ``task``, of this format.
 
@@ -156,17 +160,17 @@ def load_checkpoint(path: str | os.PathLike, *, task: str | None, modules: Seque
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
     if path.stat().st_size == 0:
-        raise CheckpointError(f"checkpoint {path} is empty (its writer was stopped?): delete it to pretrain again")
+        raise CheckpointError(f"checkpoint {path} is empty (its writer was stopped?): {_REMEDY}")
     try:
         data = torch.load(path, weights_only=True, map_location="cpu")
     except pickle.UnpicklingError as err:
         if "Unsupported global" in str(err) or "GLOBAL" in str(err):
             raise CheckpointError(f"checkpoint {path} holds objects other than tensors and plain data; "
                                   "refusing to load it (a dcsc checkpoint never does)") from None
-        raise CheckpointError(f"checkpoint {path} is corrupt or truncated: delete it to pretrain again") from None
+        raise CheckpointError(f"checkpoint {path} is corrupt or truncated, or not a checkpoint: {_REMEDY}") from None
     except (EOFError, RuntimeError, KeyError, ValueError, OSError, IndexError) as err:
-        raise CheckpointError(f"checkpoint {path} is corrupt or truncated ({type(err).__name__}): "
-                              "delete it to pretrain again") from None
+        raise CheckpointError(f"checkpoint {path} is corrupt or truncated, or not a checkpoint "
+                              f"({type(err).__name__}): {_REMEDY}") from None
     if not isinstance(data, dict) or "task" not in data:
         raise CheckpointError(f"{path} is not a dcsc-torchrl checkpoint")
     version = data.get("format_version")
