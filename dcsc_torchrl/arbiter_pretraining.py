@@ -26,6 +26,7 @@ from tensordict import TensorDictBase
 
 from dcsc_torchrl.episodes import EpisodeBatch, concat_runs
 from dcsc_torchrl.machine import machine_mean_key
+from dcsc_torchrl.networks import machine_fingerprint
 from dcsc_torchrl.online import AuthorityOnlineLearner, PolicyGradientLearner
 from dcsc_torchrl.protocol import (
     ArbiterSettings,
@@ -39,7 +40,6 @@ from dcsc_torchrl.state_arbiter import (
     StateDependentArbiter,
     authority_fit_settings,
     checked_learner_settings,
-    machine_fingerprint,
     state_arbiter_critic,
 )
 from dcsc_torchrl.task import Task

@@ -136,6 +136,7 @@ _REMEDY = "a run's own file: delete it and run its command again (a pretraining 
 """What to do with a checkpoint that cannot be read: it may be a run's (a machine, a copilot, an arbiter) or a
 file the user named by mistake, which deleting would not mend."""
 
+
 def load_checkpoint(path: str | os.PathLike, *, task: str | None, modules: Sequence[str] = ()) -> dict[str, Any]:
     """Reads a checkpoint with ``weights_only=True`` and checks it is one of ``task``, of this format.
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -257,3 +258,13 @@ def machine_from_checkpoint(data: dict, task: Task) -> tuple[nn.Module, nn.Modul
     for module, name in zip((actor, critic), task.checkpoint_modules, strict=True):
         load_module_state(module, data["state"][name], name=name)
     return actor.eval(), critic.eval()
+
+
+def machine_fingerprint(machine_net: nn.Module) -> str:
+    """A short hash of the machine's weights: which machine an arbiter was pretrained next to, and a
+    cell or a study ran next to (they refuse to be resumed next to another)."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(machine_net.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:16]

@@ -24,7 +24,7 @@ from typing import Any
 import torch
 
 from dcsc_torchrl.checkpoint import load_checkpoint, save_checkpoint
-from dcsc_torchrl.networks import machine_from_checkpoint, view_recipe_settings
+from dcsc_torchrl.networks import machine_fingerprint, machine_from_checkpoint, view_recipe_settings
 from dcsc_torchrl.task import Task
 
 SHIPPED_DIR = Path(__file__).parent / "pretrained"
@@ -98,11 +98,7 @@ def export_arbiter(task: Task, checkpoint: str | Path, out: str | Path | None = 
         ValueError: an arbiter pretrained next to another machine than the shipped one of its
             config's ``pretrain.observes`` (one line).
     """
-    from dcsc_torchrl.state_arbiter import (
-        load_pretrained_arbiter,
-        machine_fingerprint,
-        state_arbiter_task,
-    )
+    from dcsc_torchrl.state_arbiter import load_pretrained_arbiter, state_arbiter_task
 
     pretrained = load_pretrained_arbiter(checkpoint, task)  # refuses anything but a pretrained arbiter
     data = load_checkpoint(checkpoint, task=state_arbiter_task(task))

@@ -22,7 +22,6 @@ the protocol and ``dcsc play`` run it unchanged.
 from __future__ import annotations
 
 import copy
-import hashlib
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -37,7 +36,7 @@ from torch import nn
 from dcsc_torchrl.arbiters import Arbiter, centred_fusion_weight, fusion_weight
 from dcsc_torchrl.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from dcsc_torchrl.checks import check_in_range, check_values
-from dcsc_torchrl.networks import authority_critic, mlp
+from dcsc_torchrl.networks import authority_critic, machine_fingerprint, mlp
 
 if TYPE_CHECKING:
     from dcsc_torchrl.online import OnlineLearner, PolicyGradientLearner
@@ -150,15 +149,6 @@ class StateDependentArbiter(Arbiter):
         check_in_range("gain", gain, 0.0, float("inf"), low_inclusive=False, high_inclusive=False)
         check_in_range("spread", spread, 0.0, float("inf"), low_inclusive=False, high_inclusive=False)
         self.form, self.gain, self.spread = form, float(gain), float(spread)
-
-
-def machine_fingerprint(machine_net: nn.Module) -> str:
-    """A short hash of the machine's weights: which machine an arbiter was pretrained next to."""
-    digest = hashlib.sha256()
-    for name, tensor in sorted(machine_net.state_dict().items()):
-        digest.update(name.encode())
-        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-    return digest.hexdigest()[:16]
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ from dcsc_torchrl.config import (
 )
 from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.methods import task_methods
-from dcsc_torchrl.networks import machine_from_checkpoint
+from dcsc_torchrl.networks import machine_fingerprint, machine_from_checkpoint
 from dcsc_torchrl.protocol import (
     run_cell,
 )
@@ -44,7 +44,6 @@ from dcsc_torchrl.recipes.machines import (
 from dcsc_torchrl.recipes.settings import cell_settings, check_names, task_config
 from dcsc_torchrl.report import write_task_figures, write_task_summary
 from dcsc_torchrl.runlog import Progress, write_atomic
-from dcsc_torchrl.state_arbiter import machine_fingerprint
 from dcsc_torchrl.tasks import get_task
 
 

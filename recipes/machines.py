@@ -15,12 +15,11 @@ from omegaconf import DictConfig
 from dcsc_torchrl.checkpoint import checkpoint_path, load_checkpoint
 from dcsc_torchrl.config import ConfigError
 from dcsc_torchrl.copilot import TrainedCopilot, load_copilot
-from dcsc_torchrl.networks import machine_from_checkpoint, machine_view
+from dcsc_torchrl.networks import machine_fingerprint, machine_from_checkpoint, machine_view
 from dcsc_torchrl.recipes.settings import pretrain_config
 from dcsc_torchrl.state_arbiter import (
     PretrainedArbiter,
     load_pretrained_arbiter,
-    machine_fingerprint,
 )
 from dcsc_torchrl.tasks import Task
 

@@ -55,6 +55,7 @@ from tensordict.nn import TensorDictModuleBase
 from dcsc_torchrl.config import ConfigError, UsageError, config_diff, to_plain, writable_folder
 from dcsc_torchrl.episodes import EpisodeBatch, concat_runs, in_first_episode
 from dcsc_torchrl.methods import learned_method
+from dcsc_torchrl.networks import machine_fingerprint
 from dcsc_torchrl.online import OnlineLearner
 from dcsc_torchrl.protocol import ProtocolCell, Scenarios, run_seed
 from dcsc_torchrl.recipes.folder import TABLES, folder_lock, write_csv
@@ -68,7 +69,6 @@ from dcsc_torchrl.report import (
     write_task_summary,
 )
 from dcsc_torchrl.runlog import write_atomic
-from dcsc_torchrl.state_arbiter import machine_fingerprint
 from dcsc_torchrl.task import Task
 from dcsc_torchrl.transforms import HumanOperator
 

@@ -8,7 +8,7 @@ import torch
 from dcsc_torchrl.checkpoint import load_checkpoint
 from dcsc_torchrl.cli import main
 from dcsc_torchrl.config import load_config
-from dcsc_torchrl.networks import view_recipe_settings
+from dcsc_torchrl.networks import machine_fingerprint, view_recipe_settings
 from dcsc_torchrl.recipes.configs import CONFIGS
 from dcsc_torchrl.recipes.machines import PRETRAINING
 from dcsc_torchrl.recipes.play import load_play_arbiter
@@ -21,7 +21,6 @@ from dcsc_torchrl.shipped import (
 )
 from dcsc_torchrl.state_arbiter import (
     load_pretrained_arbiter,
-    machine_fingerprint,
     state_arbiter_task,
 )
 from dcsc_torchrl.tasks import get_task

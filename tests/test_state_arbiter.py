@@ -24,14 +24,13 @@ from dcsc_torchrl.checkpoint import CheckpointError, load_checkpoint
 from dcsc_torchrl.cli import main
 from dcsc_torchrl.losses import ThetaLoss
 from dcsc_torchrl.machine import MCDropoutPolicy
-from dcsc_torchrl.networks import mlp
+from dcsc_torchrl.networks import machine_fingerprint, mlp
 from dcsc_torchrl.online import PolicyGradientLearner
 from dcsc_torchrl.policy import SharedPolicyModule
 from dcsc_torchrl.shipped import shipped_machine, shipped_path
 from dcsc_torchrl.state_arbiter import (
     StateDependentArbiter,
     load_pretrained_arbiter,
-    machine_fingerprint,
 )
 from dcsc_torchrl.tasks import get_task
 
