@@ -294,6 +294,17 @@ def local_executor(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], 
     return ran, []
 
 
+def executor(workers: int) -> Executor:
+    """``workers`` cells at a time: Ray tasks on a local instance, or (1) this process in turn."""
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if workers == 1:
+        return local_executor
+    from dcsc_torchrl.recipes.sweep import ray_executor  # Ray loads only here
+
+    return ray_executor(retries=2, address=None, workers=workers)
+
+
 def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], executor: Executor, *,
              quick: bool = False, fresh: bool = False) -> GridResult:
     """The one driver of the grid: checks each task's folder can be written, locks it

@@ -144,6 +144,9 @@ def add_run_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--fresh", action="store_true",
                         help="delete the results of an earlier run in OUT/<task>/ and start over "
                              "(needed when its config differs)")
+    parser.add_argument("--workers", type=_int_at_least(1), default=1,
+                        help="cells (and missing pretrainings) at a time: 1 (default), one after another in this "
+                             "process; N > 1, Ray tasks on a local instance of N CPUs (the same rows)")
     _overrides(parser, "online.theta_lr=0.1 pretrain.out_dir=runs/mine")
     return parser
 

@@ -24,7 +24,7 @@ import yaml
 from dcsc_torchrl.config import UsageError, writable_folder
 from dcsc_torchrl.methods import DEFAULT_METHODS
 from dcsc_torchrl.recipes.folder import RUN_RECORD
-from dcsc_torchrl.recipes.grid import Executor, checked_grid, local_executor, run_grid
+from dcsc_torchrl.recipes.grid import checked_grid, executor, run_grid
 from dcsc_torchrl.recipes.options import Parser, add_reproduce_options
 from dcsc_torchrl.report import CELL_COLUMNS, read_table, write_task_figures, write_task_summary
 from dcsc_torchrl.runlog import write_atomic
@@ -71,17 +71,6 @@ def report(results: Path, wall_seconds: float | None = None) -> Path:
     text = "\n".join(parts)
     write_atomic(path, lambda f: f.write(text))
     return path
-
-
-def executor(workers: int) -> Executor:
-    """``workers`` cells at a time: Ray tasks on a local instance, or (1) this process in turn."""
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
-    if workers == 1:
-        return local_executor
-    from dcsc_torchrl.recipes.sweep import ray_executor  # Ray loads only here
-
-    return ray_executor(retries=2, address=None, workers=workers)
 
 
 def reproduce(results: Path | None = None, *, quick: bool = False, overrides: Sequence[str] = (),

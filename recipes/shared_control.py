@@ -12,7 +12,7 @@ every operator preset, one *cell* of the protocol runs (``dcsc_torchrl.protocol.
    learned arbiters still learning online.
 
     dcsc run {lunarlander,uav} [--quick] [--out DIR] [--methods M ...] [--operators P ...]
-        [--fresh] [key=value ...]
+        [--fresh] [--workers N] [key=value ...]
 
 Outputs in ``DIR/<task>/`` (default ``results/<task>/``): ``episodes.csv`` (every episode of
 every phase), ``trace.csv`` (every step of scenario 0 for each method, main operator and
@@ -49,7 +49,7 @@ from dcsc_torchrl.config import (
     distinct,
 )
 from dcsc_torchrl.methods import DEFAULT_METHODS, METHOD_NAMES, check_task_methods
-from dcsc_torchrl.recipes.grid import checked_grid, local_executor, run_grid
+from dcsc_torchrl.recipes.grid import checked_grid, executor, run_grid
 from dcsc_torchrl.recipes.options import Parser, add_run_options
 from dcsc_torchrl.recipes.settings import check_names
 from dcsc_torchrl.tasks import TASK_NAMES, get_task
@@ -64,9 +64,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False, overrides: Sequence[str] = (),
              methods: Sequence[str] | None = None, operators: Sequence[str] | None = None,
-             fresh: bool = False) -> Path:
-    """Every cell of ``task_name`` not done yet, one after another (:func:`run_grid` with the
-    :func:`local_executor`); returns ``out/<task>``.
+             fresh: bool = False, workers: int = 1) -> Path:
+    """Every cell of ``task_name`` not done yet, ``workers`` at a time (:func:`run_grid` with the
+    grid's :func:`executor`: one after another in this process, or Ray tasks on a local
+    instance); returns ``out/<task>``.
 
     Everything named (config keys, methods, operator presets, the results folder's
     earlier config, the checkpoints there are) is checked before a machine is loaded or pretrained.
@@ -80,7 +81,7 @@ def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False
     methods = tuple(methods or DEFAULT_METHODS)
     grid = checked_grid(task_name, quick=quick, overrides=overrides, operators=operators)
     torch.set_num_threads(grid.cfg.threads)
-    run_grid(Path(out), [grid], methods, local_executor, quick=quick, fresh=fresh)
+    run_grid(Path(out), [grid], methods, executor(workers), quick=quick, fresh=fresh)
     task_dir = Path(out) / grid.task
     print(f"results in {task_dir}", file=sys.stderr, flush=True)
     return task_dir
@@ -89,7 +90,7 @@ def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False
 def run(args: argparse.Namespace) -> Path:
     """``dcsc run``: :func:`run_task` with the command line's options."""
     return run_task(args.task, out=args.out, quick=args.quick, overrides=args.overrides, methods=args.methods,
-                    operators=args.operators, fresh=args.fresh)
+                    operators=args.operators, fresh=args.fresh, workers=args.workers)
 
 
 def main(argv: Sequence[str] | None = None) -> Path:

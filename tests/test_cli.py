@@ -36,7 +36,7 @@ from dcsc_torchrl.cli import build_parser, main
 from dcsc_torchrl.config import ConfigError, config_diff, load_config, to_plain
 from dcsc_torchrl.methods import METHOD_NAMES as METHODS
 from dcsc_torchrl.networks import LUNAR_QVALUE_DIMS, lunar_actor, lunar_critic, lunar_machine_dims
-from dcsc_torchrl.recipes import grid, machines
+from dcsc_torchrl.recipes import grid, machines, shared_control
 from dcsc_torchrl.recipes.configs import RECIPES_DIR as RECIPES
 from dcsc_torchrl.recipes.folder import RUN_RECORD, prepare_results
 
@@ -342,6 +342,17 @@ def test_a_run_resumed_with_an_assistant_trained_again_is_refused(machine_dir, t
     torch.save(data, expert)
     assert main(argv) == 2
     assert f"holds results of another config (files.{expert}:" in capsys.readouterr().err
+
+
+def test_dcsc_run_runs_its_cells_workers_at_a_time(machine_dir, tmp_path, monkeypatch, capsys):
+    asked = []
+    monkeypatch.setattr(shared_control, "executor", lambda workers: asked.append(workers) or grid.local_executor)
+    assert main([*run_argv(tmp_path, machine_dir), "--operators", "expert", "--workers", "2"]) == 0
+    assert asked == [2]  # Ray's executor (tests/test_sweep.py holds its rows to these)
+    with pytest.raises(SystemExit) as exit_info:
+        main([*run_argv(tmp_path, machine_dir), "--workers", "0"])
+    assert exit_info.value.code == 2
+    assert "argument --workers: expected an integer >= 1, got 0" in capsys.readouterr().err
 
 
 def test_a_finished_run_run_again_runs_no_cell(full_run, machine_dir, monkeypatch):
