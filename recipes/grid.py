@@ -1,7 +1,8 @@
 """The grid driver: a task's cells (operator preset x pretraining seed), each run by the
 protocol (:func:`dcsc_torchrl.protocol.run_cell`) and written to its own folder, then
-gathered into the task's tables, summary and figures; the executors that run the cells
-(here one after another, or ``dcsc sweep``'s Ray tasks). docs/architecture.md."""
+gathered into the task's tables, summary and figures; the local executor runs the cells
+one after another (``dcsc sweep``'s runs them as Ray tasks; :mod:`dcsc_torchrl.recipes.executors`
+picks one). docs/architecture.md."""
 
 from __future__ import annotations
 
@@ -292,17 +293,6 @@ def local_executor(out: Path, grids: Sequence[TaskGrid], cells: Sequence[Cell], 
             progress.set_postfix(last=cell.name)
             progress.update()
     return ran, []
-
-
-def executor(workers: int) -> Executor:
-    """``workers`` cells at a time: Ray tasks on a local instance, or (1) this process in turn."""
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
-    if workers == 1:
-        return local_executor
-    from dcsc_torchrl.recipes.sweep import ray_executor  # Ray loads only here
-
-    return ray_executor(retries=2, address=None, workers=workers)
 
 
 def run_grid(out: Path, grids: Sequence[TaskGrid], methods: tuple[str, ...], executor: Executor, *,

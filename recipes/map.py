@@ -38,7 +38,8 @@ from dcsc_torchrl.config import ConfigError, distinct, load_config, writable_fol
 from dcsc_torchrl.humans.traits import PRESETS
 from dcsc_torchrl.methods import METHOD_NAMES, METHODS
 from dcsc_torchrl.recipes.configs import MAP_CONFIG
-from dcsc_torchrl.recipes.grid import TaskGrid, checked_grid, executor, run_grid
+from dcsc_torchrl.recipes.executors import executor
+from dcsc_torchrl.recipes.grid import TaskGrid, checked_grid, run_grid
 from dcsc_torchrl.recipes.options import Parser, add_map_options
 from dcsc_torchrl.recipes.settings import check_names
 from dcsc_torchrl.report import QUICK_NOTE, read_table

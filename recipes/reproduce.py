@@ -23,8 +23,9 @@ import yaml
 
 from dcsc_torchrl.config import UsageError, writable_folder
 from dcsc_torchrl.methods import DEFAULT_METHODS
+from dcsc_torchrl.recipes.executors import executor
 from dcsc_torchrl.recipes.folder import RUN_RECORD
-from dcsc_torchrl.recipes.grid import checked_grid, executor, run_grid
+from dcsc_torchrl.recipes.grid import checked_grid, run_grid
 from dcsc_torchrl.recipes.options import Parser, add_reproduce_options
 from dcsc_torchrl.report import CELL_COLUMNS, read_table, write_task_figures, write_task_summary
 from dcsc_torchrl.runlog import write_atomic

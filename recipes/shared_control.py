@@ -49,7 +49,8 @@ from dcsc_torchrl.config import (
     distinct,
 )
 from dcsc_torchrl.methods import DEFAULT_METHODS, METHOD_NAMES, check_task_methods
-from dcsc_torchrl.recipes.grid import checked_grid, executor, run_grid
+from dcsc_torchrl.recipes.executors import executor
+from dcsc_torchrl.recipes.grid import checked_grid, run_grid
 from dcsc_torchrl.recipes.options import Parser, add_run_options
 from dcsc_torchrl.recipes.settings import check_names
 from dcsc_torchrl.tasks import TASK_NAMES, get_task
@@ -66,7 +67,7 @@ def run_task(task_name: str, *, out: Path = Path("results"), quick: bool = False
              methods: Sequence[str] | None = None, operators: Sequence[str] | None = None,
              fresh: bool = False, workers: int = 1) -> Path:
     """Every cell of ``task_name`` not done yet, ``workers`` at a time (:func:`run_grid` with the
-    grid's :func:`executor`: one after another in this process, or Ray tasks on a local
+    :func:`~dcsc_torchrl.recipes.executors.executor`: one after another in this process, or Ray tasks on a local
     instance); returns ``out/<task>``.
 
     Everything named (config keys, methods, operator presets, the results folder's
