@@ -1,8 +1,8 @@
 """The grid driver: a task's cells (operator preset x pretraining seed), each run by the
 protocol (:func:`dcsc_torchrl.protocol.run_cell`) and written to its own folder, then
-gathered into the task's tables, summary and figures; the local executor runs the cells
-one after another (``dcsc sweep``'s runs them as Ray tasks; :mod:`dcsc_torchrl.recipes.executors`
-picks one). docs/architecture.md."""
+gathered into the task's tables, summary and figures; the local executor, which runs the
+cells one after another (``dcsc sweep``'s executor runs them as Ray tasks;
+:mod:`dcsc_torchrl.recipes.executors` picks one). docs/architecture.md."""
 
 from __future__ import annotations
 
